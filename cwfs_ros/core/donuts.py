@@ -1,0 +1,163 @@
+"""Preparation of one donut stamp: validation, local background, centroid and flux.
+
+Paper §3.4: with a split sensor the intra and extra images come from different stars, so each
+image gets its own local background subtraction and flux normalisation before the TIE is
+solved.  Normalisation itself happens in the compensation (:mod:`.compensation`), where the
+flux inside the computation region is divided by the pupil area the image illuminates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import (
+    DonutCutError,
+    FlatImageError,
+    ImageError,
+    NonFiniteImageError,
+    StampTooSmallError,
+)
+
+__all__ = ["PreparedDonut", "prepare_donut", "MIN_SNR"]
+
+# Below this signal-to-noise ratio a stamp is treated as holding no donut.
+MIN_SNR = 10.0
+# A donut whose flux along the stamp border exceeds this fraction of its median surface
+# brightness is cut by the edge.
+_EDGE_FRACTION = 0.1
+
+
+@dataclass(frozen=True)
+class PreparedDonut:
+    """A background-subtracted stamp and its measured properties.
+
+    Attributes:
+        image: background-subtracted image (float64), ``[row=y, col=x]``.
+        background: subtracted background level per pixel (input units).
+        noise: rms of the background pixels (input units).
+        centroid_xy: flux-weighted centroid (col, row) in pixels.
+        flux: total donut flux (input units).
+        snr: flux signal-to-noise ratio.
+    """
+
+    image: np.ndarray
+    background: float
+    noise: float
+    centroid_xy: tuple[float, float]
+    flux: float
+    snr: float
+
+
+def _robust_level(values: np.ndarray) -> tuple[float, float]:
+    """Median and MAD-based sigma of background pixels, with one 3-sigma clipping pass."""
+    med = float(np.median(values))
+    sig = 1.4826 * float(np.median(np.abs(values - med)))
+    if sig > 0:
+        keep = np.abs(values - med) < 3 * sig
+        if keep.sum() > 10:
+            med = float(np.median(values[keep]))
+            sig = 1.4826 * float(np.median(np.abs(values[keep] - med)))
+    return med, sig
+
+
+def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
+                  margin_px: float) -> PreparedDonut:
+    """Validate a donut stamp and measure background, centroid and flux.
+
+    Args:
+        image: 2-D stamp ``[row=y, col=x]``.
+        name: ``"intra"`` or ``"extra"`` (used in error messages).
+        outer_radius_px: expected outer radius of the donut image in pixels.
+        margin_px: extra room needed around the donut (the computation boundary).
+
+    Raises:
+        ImageError subclasses naming the problem: non-finite pixels, an empty or flat image,
+        a stamp too small for the donut at this defocus, a donut cut by the stamp edge.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ImageError(f"{name} image must be 2-D, got shape {img.shape}")
+    if not np.issubdtype(img.dtype, np.number) or np.iscomplexobj(img):
+        raise ImageError(f"{name} image must be real numbers, got dtype {img.dtype}")
+    img = img.astype(np.float64, copy=True)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        raise NonFiniteImageError(
+            f"{name} image has {int(bad.sum())} non-finite pixel(s) (NaN or Inf)"
+        )
+    need = int(np.ceil(2 * (outer_radius_px + margin_px)))
+    if min(img.shape) < need:
+        raise StampTooSmallError(
+            f"{name} stamp {img.shape[1]}x{img.shape[0]} px is too small for a donut of "
+            f"radius {outer_radius_px:.1f} px plus {margin_px:.0f} px margin: need at least "
+            f"{need}x{need} px"
+        )
+    if float(img.max() - img.min()) == 0.0:
+        raise FlatImageError(f"{name} image is constant ({img.flat[0]!r}): no donut")
+
+    ny, nx = img.shape
+    # First pass: background from the stamp border, then a thresholded centroid.
+    border = np.concatenate([img[:2].ravel(), img[-2:].ravel(), img[:, :2].ravel(),
+                             img[:, -2:].ravel()])
+    bg, sig = _robust_level(border)
+    work = img - bg
+    peak = float(np.percentile(work, 99.5))
+    if peak <= 0:
+        raise FlatImageError(f"{name} image has no flux above its background")
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    sel = work > 0.3 * peak
+    w = work * sel
+    cx, cy = float((w * xx).sum() / w.sum()), float((w * yy).sum() / w.sum())
+
+    # Second pass: background from pixels well outside the donut, where there are enough.
+    for _ in range(2):
+        r = np.hypot(xx - cx, yy - cy)
+        outside = r > outer_radius_px + 4
+        if outside.sum() >= max(50, 0.05 * img.size):
+            bg, sig = _robust_level(img[outside])
+        work = img - bg
+        inside = r <= outer_radius_px + 2
+        w = np.where(inside, work, 0.0)
+        tot = w.sum()
+        if tot <= 0:
+            raise FlatImageError(f"{name} image has no flux above its background")
+        cx, cy = float((w * xx).sum() / tot), float((w * yy).sum() / tot)
+
+    r = np.hypot(xx - cx, yy - cy)
+    inside = r <= outer_radius_px + 2
+    flux = float(work[inside].sum())
+    npix = int(inside.sum())
+    # Background-limited S/N: the input units need not be photons, so no Poisson term.
+    noise_var = npix * sig * sig
+    snr = flux / np.sqrt(noise_var) if noise_var > 0 else np.inf
+    if flux <= 0 or snr < MIN_SNR:
+        raise FlatImageError(
+            f"{name} image holds no donut: flux {flux:.4g} at S/N {snr:.1f} "
+            f"(minimum {MIN_SNR:g})"
+        )
+
+    # Edge checks: the donut (plus margin) must fit, and the border must be dark.
+    lo_x, hi_x = cx - outer_radius_px, cx + outer_radius_px
+    lo_y, hi_y = cy - outer_radius_px, cy + outer_radius_px
+    if lo_x < 0 or lo_y < 0 or hi_x > nx - 1 or hi_y > ny - 1:
+        raise DonutCutError(
+            f"{name} donut (centre col {cx:.1f}, row {cy:.1f}, radius {outer_radius_px:.1f} px) "
+            f"extends beyond the {nx}x{ny} stamp"
+        )
+    body = work[(r <= outer_radius_px) & (work > 0.3 * peak)]
+    level = float(np.median(body)) if body.size else peak
+    edge_means = [work[0].mean(), work[-1].mean(), work[:, 0].mean(), work[:, -1].mean()]
+    if max(edge_means) > _EDGE_FRACTION * level:
+        raise DonutCutError(
+            f"{name} donut is cut by the stamp edge: border brightness "
+            f"{max(edge_means):.4g} is {max(edge_means) / level:.0%} of the donut's"
+        )
+    if lo_x < margin_px or lo_y < margin_px or hi_x > nx - 1 - margin_px or \
+            hi_y > ny - 1 - margin_px:
+        raise StampTooSmallError(
+            f"{name} donut is off-centre: centre (col {cx:.1f}, row {cy:.1f}) leaves less than "
+            f"the {margin_px:.0f} px margin the solver needs inside the {nx}x{ny} stamp"
+        )
+    return PreparedDonut(work, bg, sig, (cx, cy), flux, float(snr))

@@ -1,0 +1,181 @@
+"""Annular Zernike polynomials (Noll ordering, Mahajan's annular form) with derivatives.
+
+The estimator needs, at fixed pupil points, the values of every basis term and its first and
+second derivatives: the series-expansion solver projects the signal on ``Z_j`` and uses
+``grad Z_j`` (paper §2.2, ``F_j`` and ``M_ji``), and the compensation needs the gradient and
+Hessian of the current wavefront (§2.1, eqs. 9-12) at every outer iteration.
+
+The polynomials come from GalSim (``galsim.zernike``), which implements Mahajan's annular
+Zernikes in Noll order and exposes each as a polynomial in x and y (its ``_coef_array_xy``).
+This module keeps them in that monomial form: a wavefront's derivatives are then exact
+monomial coefficient shifts, and the gradient and Hessian fields at all points come from one
+small matrix product with the cached monomials, instead of five products with full basis
+arrays.  That is what makes the outer loop fast.
+
+Normalisation: orthonormal over the annulus ``eps <= r <= 1`` in the sense
+``(1/A) * integral(Z_i Z_j dA) = delta_ij`` (Noll's convention).  Coordinates are reduced pupil
+coordinates (pupil radius = 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
+
+import numpy as np
+from galsim.zernike import Zernike
+
+__all__ = ["ZernikeBasis", "zernike_basis", "noll_to_nm", "xy_coefficients"]
+
+
+def noll_to_nm(j: int) -> tuple[int, int]:
+    """Return the radial order n and signed azimuthal order m of Noll index ``j`` (j >= 1).
+
+    Noll's convention: even j carries cos(m theta) (m > 0), odd j carries sin (m < 0).
+    """
+    if j < 1:
+        raise ValueError(f"Noll index must be >= 1, got {j}")
+    n = 0
+    while (n + 1) * (n + 2) // 2 < j:
+        n += 1
+    k = j - n * (n + 1) // 2 - 1
+    ms = [m for m in range(n % 2, n + 1, 2) for _ in ((0,) if m == 0 else (0, 1))]
+    m = ms[k]
+    return n, (m if (m == 0 or j % 2 == 0) else -m)
+
+
+def _order(jmax: int) -> int:
+    return noll_to_nm(jmax)[0]
+
+
+def _exponents(order: int) -> np.ndarray:
+    """(a, b) exponents of the monomials x^a y^b with a + b <= order."""
+    return np.array([(a, d - a) for d in range(order + 1) for a in range(d + 1)])
+
+
+@lru_cache(maxsize=32)
+def xy_coefficients(jmax: int, eps: float) -> np.ndarray:
+    """Monomial coefficients of Z_1..Z_jmax: shape (jmax, n_monomials), see ``_exponents``."""
+    order = _order(jmax)
+    exps = _exponents(order)
+    out = np.zeros((jmax, len(exps)))
+    for j in range(1, jmax + 1):
+        coef = np.zeros(j + 1)
+        coef[j] = 1.0
+        arr = Zernike(coef, R_outer=1.0, R_inner=eps)._coef_array_xy  # arr[a, b]: x^a y^b
+        for k, (a, b) in enumerate(exps):
+            if a < arr.shape[0] and b < arr.shape[1]:
+                out[j - 1, k] = arr[a, b]
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=8)
+def _derivative_operators(order: int) -> np.ndarray:
+    """Matrices mapping monomial coefficients to those of d/dx, d/dy, d2/dx2, d2/dxdy, d2/dy2.
+
+    Shape (5, n_mono, n_mono), used as ``c @ D[k]`` on a row vector of coefficients.
+    """
+    exps = _exponents(order)
+    index = {tuple(e): k for k, e in enumerate(exps)}
+    dx = np.zeros((len(exps), len(exps)))
+    dy = np.zeros_like(dx)
+    for k, (a, b) in enumerate(exps):
+        if a > 0:
+            dx[k, index[(a - 1, b)]] = a
+        if b > 0:
+            dy[k, index[(a, b - 1)]] = b
+    ops = np.stack([dx, dy, dx @ dx, dx @ dy, dy @ dy])
+    ops.setflags(write=False)
+    return ops
+
+
+@dataclass(frozen=True)
+class ZernikeBasis:
+    """Annular Zernikes Z_1..Z_jmax at fixed pupil points, with fast derivative fields.
+
+    Attributes:
+        jmax, eps: highest Noll index and obscuration ratio.
+        monomials: x^a y^b at the points, shape (n_mono, npoints).
+        coeffs_xy: monomial coefficients of each Zernike, shape (jmax, n_mono).
+        z: Z_j at the points, shape (jmax, npoints); row j-1 is Noll j.
+    """
+
+    jmax: int
+    eps: float
+    monomials: np.ndarray = field(repr=False)
+    coeffs_xy: np.ndarray = field(repr=False)
+    z: np.ndarray = field(repr=False)
+
+    @property
+    def npoints(self) -> int:
+        return self.monomials.shape[1]
+
+    @cached_property
+    def _ops(self) -> np.ndarray:
+        return _derivative_operators(_order(self.jmax))
+
+    def _term_derivative(self, k: int) -> np.ndarray:
+        return (self.coeffs_xy @ self._ops[k]) @ self.monomials
+
+    # Per-term derivative arrays (jmax, npoints), built on first use (solver set-up, tests).
+    @cached_property
+    def dx(self) -> np.ndarray:
+        return self._term_derivative(0)
+
+    @cached_property
+    def dy(self) -> np.ndarray:
+        return self._term_derivative(1)
+
+    @cached_property
+    def dxx(self) -> np.ndarray:
+        return self._term_derivative(2)
+
+    @cached_property
+    def dxy(self) -> np.ndarray:
+        return self._term_derivative(3)
+
+    @cached_property
+    def dyy(self) -> np.ndarray:
+        return self._term_derivative(4)
+
+    def wavefront(self, coeffs: np.ndarray) -> np.ndarray:
+        """W at the points for Noll coefficients ``coeffs`` (Z1.., at most jmax long)."""
+        c = np.asarray(coeffs, float)[: self.jmax]
+        return c @ self.z[: c.size]
+
+    def derivative_fields(self, coeffs: np.ndarray) -> np.ndarray:
+        """``[W_x, W_y, W_xx, W_xy, W_yy]`` at the points, shape (5, npoints).
+
+        One (5 x n_mono) @ (n_mono x npoints) product: the cost does not grow with jmax.
+        """
+        c = np.asarray(coeffs, float)[: self.jmax]
+        mono = c @ self.coeffs_xy[: c.size]
+        return (mono @ self._ops) @ self.monomials
+
+
+def zernike_basis(x: np.ndarray, y: np.ndarray, jmax: int = 22, eps: float = 0.61,
+                  dtype: type = np.float64) -> ZernikeBasis:
+    """Annular Zernikes 1..jmax (with derivatives on demand) at reduced pupil points (x, y).
+
+    Args:
+        x, y: reduced pupil coordinates (pupil radius 1), equal shapes; flattened.
+        jmax: highest Noll index (any value >= 1; 22 by default, 37 and beyond supported).
+        eps: obscuration ratio of the annulus (inner/outer radius); 0 gives circle Zernikes.
+        dtype: floating type of the cached arrays.
+    """
+    if int(jmax) != jmax or jmax < 1:
+        raise ValueError(f"jmax must be an integer >= 1, got {jmax}")
+    if not 0.0 <= eps < 1.0:
+        raise ValueError(f"obscuration eps must be in [0, 1), got {eps}")
+    jmax = int(jmax)
+    x = np.asarray(x, dtype=float).ravel()
+    y = np.asarray(y, dtype=float).ravel()
+    exps = _exponents(_order(jmax))
+    maxp = int(exps.max())
+    xp = np.vstack([np.ones_like(x)] + [x**p for p in range(1, maxp + 1)])
+    yp = np.vstack([np.ones_like(y)] + [y**p for p in range(1, maxp + 1)])
+    mono = np.ascontiguousarray(xp[exps[:, 0]] * yp[exps[:, 1]], dtype=dtype)
+    coeffs = np.asarray(xy_coefficients(jmax, float(eps)), dtype=dtype)
+    z = np.ascontiguousarray(coeffs @ mono)
+    return ZernikeBasis(jmax, float(eps), mono, coeffs, z)

@@ -1,0 +1,471 @@
+"""Ray-traced donut images and true wavefront Zernikes for the LSST corner sensors.
+
+The renderer is independent of any wavefront estimator. It does not use a pupil-to-image
+mapping model. It traces photons through the full batoid model: random rays are drawn
+uniformly over the entrance-pupil annulus and traced through the (perturbed, defocused)
+telescope to the detector. Vignetted and failed rays are dropped, which is how vignetting
+shows up. The surviving rays are binned into pixels.
+
+Image frame
+-----------
+Stamps are ``image[row, col]`` with ``col`` increasing with the detector-frame x and ``row``
+increasing with y. For a telescope whose camera is not rotated, those are batoid's global
+focal-plane x and y. In batoid's LSST model a star at field angle (+theta_x, 0) images at
+focal-plane +x (plate scale ~ +10.31 m/rad), so the stamp frame is the frame of the field
+angles. ``np.histogram2d(y, x, ...)`` would give the same layout.
+
+Timing
+------
+Measured with ``bench/bench_sim.py`` on this project's shared 2-core development machine,
+batoid 0.9.0, 160x160 stamp, corner field, one wavelength. The ranges span idle to
+moderately loaded. Batoid's trace is single-threaded here.
+
+* 1e5 rays: 0.23-0.38 s; 3e5 rays: 0.7-0.9 s; 1e6 rays: 2.2-2.6 s per donut. That is
+  ~2.3 µs per ray, of which batoid's trace is ~95 %. Ray generation and binning take ~0.1 s
+  per 1e6 rays.
+* ``true_zernikes_nm``: 40-150 ms with the default ``nx=128`` (within ~0.3 nm of
+  ``nx=255``), and 0.17-0.38 s with ``nx=255``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import batoid
+import numpy as np
+import yaml
+
+from ._paths import config_dir
+from .telescope import defocused
+
+__all__ = [
+    "CornerSensor",
+    "TracedRays",
+    "corner_fields",
+    "load_corner_geometry",
+    "plate_scale_um_per_arcsec",
+    "pupil_vignetting_fraction",
+    "render_donut",
+    "trace_pupil_rays",
+    "true_zernikes_nm",
+]
+
+_FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+_ARCSEC = np.pi / 180.0 / 3600.0  # radians per arcsec
+_CHUNK = 1_000_000  # rays traced per batoid call (bounds memory: ~100 B per ray)
+
+
+# --------------------------------------------------------------------------------------
+# Ray tracing
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TracedRays:
+    """Rays traced from the entrance pupil to the detector.
+
+    Attributes
+    ----------
+    pupil_x, pupil_y : (N,) ray positions on the entrance-pupil (stop) plane, metres,
+        in batoid's global frame.
+    x, y : (N,) ray positions on the detector, metres, in the detector's local frame.
+    ok : (N,) bool; True for rays that reached the detector (not vignetted and not failed).
+    chief_x, chief_y : position of the chief ray (pupil centre) on the detector, metres.
+        The chief ray of an obscured telescope is formally vignetted by the central hole;
+        its geometric position is used.
+    """
+
+    pupil_x: np.ndarray
+    pupil_y: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    ok: np.ndarray
+    chief_x: float
+    chief_y: float
+
+
+def _pupil_geometry(telescope: batoid.Optic) -> tuple[float, float]:
+    """Return (outer radius [m], fractional obscuration) of the entrance-pupil annulus."""
+    return 0.5 * float(telescope.pupilSize), float(telescope.pupilObscuration)
+
+
+def _trace_chunk(
+    optic: batoid.Optic, px: np.ndarray, py: np.ndarray, wl_m: float, thx: float, thy: float
+) -> batoid.RayVector:
+    rv = batoid.RayVector.fromStop(px, py, optic, wavelength=wl_m, theta_x=thx, theta_y=thy)
+    return optic.trace(rv)
+
+
+def _chief_position(
+    optic: batoid.Optic, wl_m: float, thx: float, thy: float
+) -> tuple[float, float] | None:
+    out = _trace_chunk(optic, np.zeros(1), np.zeros(1), wl_m, thx, thy)
+    if bool(out.failed[0]):
+        return None
+    return float(out.x[0]), float(out.y[0])
+
+
+def trace_pupil_rays(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float],
+    detector_offset_mm: float,
+    *,
+    wavelength_nm: float,
+    n_rays: int,
+    rng: np.random.Generator | None = None,
+) -> TracedRays:
+    """Trace ``n_rays`` uniformly random rays over the entrance-pupil annulus to the detector.
+
+    Parameters
+    ----------
+    telescope : in-focus telescope (e.g. :func:`~cwfs_ros.sim.telescope.perturbed_telescope`).
+    field_deg : (theta_x, theta_y) field angle in degrees (batoid field frame, postel).
+    detector_offset_mm : detector displacement in mm (negative = intra-focal), see
+        :func:`~cwfs_ros.sim.telescope.defocused`.
+    wavelength_nm : wavelength in nm.
+    n_rays : number of rays drawn over the annulus (including those later vignetted).
+    rng : random generator (a fresh default one if None).
+
+    Returns
+    -------
+    TracedRays
+
+    Notes
+    -----
+    Rays are drawn over the annulus ``obscuration * R <= r <= R`` with ``R = pupilSize / 2``.
+    Off axis, a few rays just outside this annulus would still reach the detector. At the
+    corner sensors they would add about 0.15 % more light; they are not traced.
+    """
+    rng = np.random.default_rng() if rng is None else rng
+    n_rays = int(n_rays)
+    if n_rays < 1:
+        raise ValueError("n_rays must be >= 1")
+    optic = defocused(telescope, detector_offset_mm)
+    wl_m = float(wavelength_nm) * 1e-9
+    thx, thy = (float(np.deg2rad(a)) for a in field_deg)
+    r_out, eps = _pupil_geometry(optic)
+
+    # Uniform over the annulus area.
+    r = r_out * np.sqrt(rng.uniform(eps * eps, 1.0, n_rays))
+    phi = rng.uniform(0.0, 2.0 * np.pi, n_rays)
+    px = r * np.cos(phi)
+    py = r * np.sin(phi)
+
+    x = np.empty(n_rays)
+    y = np.empty(n_rays)
+    ok = np.empty(n_rays, dtype=bool)
+    for lo in range(0, n_rays, _CHUNK):
+        hi = min(lo + _CHUNK, n_rays)
+        out = _trace_chunk(optic, px[lo:hi], py[lo:hi], wl_m, thx, thy)
+        x[lo:hi] = out.x
+        y[lo:hi] = out.y
+        ok[lo:hi] = ~(out.vignetted | out.failed)
+
+    chief = _chief_position(optic, wl_m, thx, thy)
+    if chief is None:  # pragma: no cover - does not happen for LSST fields <= 1.75 deg
+        chief = (float(np.mean(x[ok])), float(np.mean(y[ok]))) if ok.any() else (0.0, 0.0)
+    return TracedRays(px, py, x, y, ok, chief[0], chief[1])
+
+
+def plate_scale_um_per_arcsec(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float] = (0.0, 0.0),
+    *,
+    wavelength_nm: float = 622.0,
+) -> float:
+    """Return the local focal-plane plate scale in µm per arcsec, from the ray-traced model.
+
+    It is ``sqrt(|det J|)``, where J is batoid's Jacobian d(x, y)/d(theta_x, theta_y) at the
+    field point, i.e. the effective focal length (m/rad) converted to µm/arcsec. For LSST it
+    is ~10.31 m/rad = ~50.0 µm/arcsec, i.e. 0.2 arcsec per 10 µm pixel.
+    """
+    thx, thy = (float(np.deg2rad(a)) for a in field_deg)
+    jac = batoid.drdth(telescope, thx, thy, float(wavelength_nm) * 1e-9)
+    focal_m = float(np.sqrt(abs(np.linalg.det(jac))))
+    return focal_m * _ARCSEC * 1e6
+
+
+# --------------------------------------------------------------------------------------
+# Rendering
+# --------------------------------------------------------------------------------------
+
+
+def _bin_to_stamp(xs_px: np.ndarray, ys_px: np.ndarray, npix: int, weights: float) -> np.ndarray:
+    """Histogram continuous pixel coordinates (pixel i spans [i, i+1)) into (npix, npix)."""
+    col = np.floor(xs_px).astype(np.int64)
+    row = np.floor(ys_px).astype(np.int64)
+    keep = (col >= 0) & (col < npix) & (row >= 0) & (row < npix)
+    idx = row[keep] * npix + col[keep]
+    counts = np.bincount(idx, minlength=npix * npix).astype(np.float64)
+    return counts.reshape(npix, npix) * weights
+
+
+def render_donut(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float],
+    detector_offset_mm: float,
+    *,
+    wavelength_nm: float,
+    npix: int = 160,
+    pixel_um: float = 10.0,
+    n_photons: float = 1e6,
+    n_rays: int | None = None,
+    seeing_fwhm_arcsec: float = 0.0,
+    sky_per_pixel: float = 0.0,
+    read_noise_e: float = 0.0,
+    offset_px: tuple[float, float] = (0.0, 0.0),
+    rng: np.random.Generator | None = None,
+    centre: str | tuple[float, float] = "chief",
+    poisson: bool = True,
+    subtract_sky: bool = False,
+) -> np.ndarray:
+    """Ray-trace a defocused star image ("donut") on an LSST wavefront sensor.
+
+    Parameters
+    ----------
+    telescope : the in-focus (perturbed) telescope, e.g. from ``perturbed_telescope``.
+    field_deg : (theta_x, theta_y) of the star in degrees (batoid field frame).
+    detector_offset_mm : detector displacement in mm; negative = intra-focal (before focus),
+        positive = extra-focal. LSST corner sensors use -1.5 / +1.5.
+    wavelength_nm : monochromatic wavelength in nm.
+    npix : stamp side in pixels.
+    pixel_um : pixel pitch in µm.
+    n_photons : expected number of photons (electrons) entering the **unvignetted** pupil
+        annulus. Vignetted photons are lost, so the expected image sum is
+        ``n_photons * (1 - vignetting fraction)``, minus any light falling off the stamp.
+    n_rays : rays to trace; default ``min(n_photons, 2e6)``. Each ray carries
+        ``n_photons / n_rays`` photons (so ray shot noise is below photon noise when
+        n_rays >= n_photons).
+    seeing_fwhm_arcsec : FWHM of a Gaussian atmospheric blur, in arcsec. It is applied as
+        independent per-ray offsets on the detector, converted with the model's plate scale
+        (:func:`plate_scale_um_per_arcsec`, ~50 µm/arcsec for LSST).
+    sky_per_pixel : expected sky background in electrons per pixel, added before noise.
+    read_noise_e : Gaussian read noise, sigma in electrons per pixel.
+    offset_px : (dx, dy) shift of the donut within the stamp in pixels: +dx moves it towards
+        larger column index, +dy towards larger row index.
+    rng : random generator for ray positions and noise (fresh default if None).
+    centre : reference point of the stamp. ``"chief"``: the chief ray's hit on the detector.
+        ``"centroid"``: the mean position of the surviving rays, before seeing. A tuple
+        ``(x_m, y_m)``: a fixed detector position in metres, in the detector's local frame.
+        Use it to see image motion between telescopes.
+    poisson : if False, return the expected (noise-free, ray-sampled) image plus sky, and
+        skip Poisson noise (read noise is still added if ``read_noise_e > 0``).
+    subtract_sky : subtract ``sky_per_pixel`` from the returned image (after the noise).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(npix, npix)`` image in electrons, indexed ``[row = y, col = x]`` in the
+        detector (focal-plane) frame. The reference point lands at continuous pixel
+        coordinates ``(x, y) = (npix / 2 + dx, npix / 2 + dy)``, where pixel i spans
+        [i, i+1). For the default ``offset_px`` and an even ``npix`` that is the shared
+        corner of the four central pixels. In pixel-centre convention it is
+        ``(npix - 1) / 2 + offset``.
+    """
+    if npix < 1:
+        raise ValueError("npix must be >= 1")
+    if n_photons <= 0:
+        raise ValueError("n_photons must be > 0")
+    if isinstance(centre, str) and centre not in ("chief", "centroid"):
+        raise ValueError("centre must be 'chief', 'centroid' or an (x_m, y_m) tuple")
+    rng = np.random.default_rng() if rng is None else rng
+    if n_rays is None:
+        n_rays = int(max(1, round(min(float(n_photons), 2e6))))
+
+    rays = trace_pupil_rays(
+        telescope,
+        field_deg,
+        detector_offset_mm,
+        wavelength_nm=wavelength_nm,
+        n_rays=n_rays,
+        rng=rng,
+    )
+    x = rays.x[rays.ok]
+    y = rays.y[rays.ok]
+    if not isinstance(centre, str):
+        x0, y0 = _pair(centre)
+    elif centre == "chief":
+        x0, y0 = rays.chief_x, rays.chief_y
+    else:
+        x0, y0 = (float(np.mean(x)), float(np.mean(y))) if x.size else (0.0, 0.0)
+
+    pix_m = float(pixel_um) * 1e-6
+    xs = (x - x0) / pix_m
+    ys = (y - y0) / pix_m
+    if seeing_fwhm_arcsec > 0:
+        scale = plate_scale_um_per_arcsec(telescope, field_deg, wavelength_nm=wavelength_nm)
+        sigma_px = seeing_fwhm_arcsec / _FWHM_PER_SIGMA * scale / float(pixel_um)
+        xs = xs + rng.normal(0.0, sigma_px, xs.size)
+        ys = ys + rng.normal(0.0, sigma_px, ys.size)
+    xs += 0.5 * npix + float(offset_px[0])
+    ys += 0.5 * npix + float(offset_px[1])
+
+    image = _bin_to_stamp(xs, ys, npix, float(n_photons) / n_rays)
+    if sky_per_pixel:
+        image += float(sky_per_pixel)
+    if poisson:
+        image = rng.poisson(image).astype(np.float64)
+    if read_noise_e > 0:
+        image += rng.normal(0.0, float(read_noise_e), image.shape)
+    if subtract_sky and sky_per_pixel:
+        image -= float(sky_per_pixel)
+    return image
+
+
+def pupil_vignetting_fraction(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float],
+    detector_offset_mm: float = 0.0,
+    wavelength_nm: float = 622.0,
+    *,
+    n_grid: int = 256,
+) -> float:
+    """Return the fraction of the entrance-pupil annulus that is vignetted at a field point.
+
+    Parameters
+    ----------
+    telescope : in-focus telescope.
+    field_deg : (theta_x, theta_y) in degrees.
+    detector_offset_mm : detector displacement in mm. It barely matters: the vignetting comes
+        from the mirrors and lenses.
+    wavelength_nm : wavelength in nm.
+    n_grid : the pupil is sampled on a deterministic ``n_grid x n_grid`` square grid,
+        keeping the points inside the annulus (~0.49 n_grid^2 rays).
+
+    Returns
+    -------
+    float
+        Fraction in [0, 1] of annulus rays that do not reach the detector. About 0 on axis
+        and about 0.075 at the LSST corner sensors.
+    """
+    optic = defocused(telescope, detector_offset_mm)
+    r_out, eps = _pupil_geometry(optic)
+    g = (np.arange(n_grid) + 0.5) / n_grid * 2.0 - 1.0
+    gx, gy = np.meshgrid(g * r_out, g * r_out)
+    rr = np.hypot(gx, gy)
+    inside = (rr <= r_out) & (rr >= eps * r_out)
+    px, py = gx[inside], gy[inside]
+    thx, thy = (float(np.deg2rad(a)) for a in field_deg)
+    out = _trace_chunk(optic, px, py, float(wavelength_nm) * 1e-9, thx, thy)
+    ok = ~(out.vignetted | out.failed)
+    return float(1.0 - np.mean(ok))
+
+
+# --------------------------------------------------------------------------------------
+# Truth
+# --------------------------------------------------------------------------------------
+
+
+def true_zernikes_nm(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float],
+    *,
+    wavelength_nm: float,
+    jmax: int = 22,
+    eps: float = 0.61,
+    nx: int = 128,
+) -> np.ndarray:
+    """Return the true wavefront annular Zernikes, Noll 4..jmax, in nm.
+
+    Parameters
+    ----------
+    telescope : the **in-focus** telescope (detector at the nominal focal plane). Do not
+        pass a ``defocused`` optic; its wavefront contains the sensor defocus itself
+        (~ tens of µm of Z4).
+    field_deg : (theta_x, theta_y) in degrees.
+    wavelength_nm : wavelength in nm.
+    jmax : highest Noll index.
+    eps : annular obscuration ratio of the Zernike basis.
+    nx : pupil sampling of :func:`batoid.zernike`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(jmax - 3,)`` coefficients for Noll j = 4..jmax, in nm of wavefront (OPD). They are
+        batoid's convention: the wavefront relative to the chief-ray reference sphere, pupil
+        coordinates in batoid's global x/y, and the fit over the unvignetted pupil.
+    """
+    if jmax < 4:
+        raise ValueError("jmax must be >= 4")
+    thx, thy = (float(np.deg2rad(a)) for a in field_deg)
+    wl_m = float(wavelength_nm) * 1e-9
+    zk_waves = batoid.zernike(telescope, thx, thy, wl_m, jmax=jmax, eps=eps, nx=nx)
+    return np.asarray(zk_waves[4 : jmax + 1], dtype=np.float64) * float(wavelength_nm)
+
+
+# --------------------------------------------------------------------------------------
+# Corner-sensor geometry
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CornerSensor:
+    """One LSST corner wavefront sensor (a split chip: extra-focal half + intra-focal half).
+
+    Attributes
+    ----------
+    name : raft name (``R00``, ``R04``, ``R40``, ``R44``).
+    extra_field_deg, intra_field_deg : field points (theta_x, theta_y) in degrees of the
+        extra-focal (SW0) and intra-focal (SW1) halves.
+    mid_field_deg : midpoint of the two, in degrees.
+    extra_offset_mm, intra_offset_mm : detector offsets in mm (+1.5 and -1.5).
+    """
+
+    name: str
+    extra_field_deg: tuple[float, float]
+    intra_field_deg: tuple[float, float]
+    mid_field_deg: tuple[float, float]
+    extra_offset_mm: float
+    intra_offset_mm: float
+
+
+def _pair(v: object) -> tuple[float, float]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (2,):
+        raise ValueError(f"expected a pair of numbers, got {v!r}")
+    return float(a[0]), float(a[1])
+
+
+def load_corner_geometry(path: str | Path | None = None) -> dict[str, CornerSensor]:
+    """Read the corner-sensor geometry YAML (default ``config/sensors/lsst_corners.yaml``).
+
+    Returns
+    -------
+    dict
+        Raft name -> :class:`CornerSensor`, in the file's order.
+    """
+    p = Path(path) if path is not None else config_dir() / "sensors" / "lsst_corners.yaml"
+    with open(p, encoding="utf-8") as f:
+        cfg = yaml.safe_load(f)
+    offsets: Mapping[str, float] = cfg.get("detector_offset_mm", {"extra": 1.5, "intra": -1.5})
+    out: dict[str, CornerSensor] = {}
+    for name, c in cfg["corners"].items():
+        extra = _pair(c["extra"]["field_deg"])
+        intra = _pair(c["intra"]["field_deg"])
+        mid = (
+            _pair(c["mid_deg"])
+            if "mid_deg" in c
+            else (
+                0.5 * (extra[0] + intra[0]),
+                0.5 * (extra[1] + intra[1]),
+            )
+        )
+        out[str(name)] = CornerSensor(
+            name=str(name),
+            extra_field_deg=extra,
+            intra_field_deg=intra,
+            mid_field_deg=mid,
+            extra_offset_mm=float(offsets["extra"]),
+            intra_offset_mm=float(offsets["intra"]),
+        )
+    return out
+
+
+def corner_fields(path: str | Path | None = None) -> dict[str, dict[str, tuple[float, float]]]:
+    """Return ``{raft: {"extra": (thx, thy), "intra": (...), "mid": (...)}}`` in degrees."""
+    return {
+        name: {"extra": s.extra_field_deg, "intra": s.intra_field_deg, "mid": s.mid_field_deg}
+        for name, s in load_corner_geometry(path).items()
+    }

@@ -1,0 +1,424 @@
+"""Tests of cwfs_ros.core.control (optical feedback control core).
+
+Expected values come from the ts_ofc data files read directly here, from independent numpy
+linear algebra, or from batoid ray tracing, never from the code under test.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from cwfs_ros.core import control as C
+from cwfs_ros.core.errors import ConfigError
+
+OFC = Path(__file__).resolve().parents[1] / "config" / "ofc"
+CORNERS_DEG = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * 1.1902777777777778
+STROKES = [5900, 6700, 6700, 0.12, 0.12, 8700, 7600, 7600, 0.24, 0.24]  # ts_ofc rb_stroke
+
+
+@pytest.fixture(scope="module")
+def sm() -> C.SensitivityMatrix:
+    return C.SensitivityMatrix.from_ts_ofc()
+
+
+@pytest.fixture(scope="module")
+def weights() -> np.ndarray:
+    with open(OFC / "normalization_weights" / "range-fwhm.yaml") as f:
+        return np.array(yaml.safe_load(f), dtype=float)
+
+
+@pytest.fixture(scope="module")
+def senm_um() -> np.ndarray:
+    return np.load(OFC / "senM_corners_76x50_um_per_dof.npy")
+
+
+def perturbation() -> np.ndarray:
+    """M2 dx 200 µm + camera dz 20 µm + M1M3 mode 1 0.1 µm + M2 mode 2 0.05 µm."""
+    x = np.zeros(50)
+    x[1], x[5], x[10], x[31] = 200.0, 20.0, 0.1, 0.05
+    return x
+
+
+def solver(sm: C.SensitivityMatrix, **kw) -> C.OFCSolver:
+    kw.setdefault("intrinsic_nm", np.zeros(76))
+    return C.OFCSolver(sm, **kw)
+
+
+def rms4(r: np.ndarray, n: int = 4) -> float:
+    return float(np.sqrt(np.sum(r**2) / n))
+
+
+def kept_modes(an: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    u, _, vt = np.linalg.svd(an, full_matrices=False)
+    return u[:, :k], vt[:k]
+
+
+# ------------------------------------------------------------------ data / loading
+def test_ts_ofc_matrix_reproduces_corner_npy(sm, senm_um):
+    """Evaluating the double-Zernike yaml at the SW0 corners gives the 76x50 npy (µm, -sign)."""
+    assert sm.matrix_nm.shape == (76, 50)
+    assert sm.source == "ts_ofc"
+    np.testing.assert_allclose(sm.matrix_nm, -1000.0 * senm_um, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(sm.field_points_deg, CORNERS_DEG, atol=1e-12)
+    again = C.SensitivityMatrix.from_npy(OFC / "senM_corners_76x50_um_per_dof.npy",
+                                         units="um", convention="ts_ofc", n_fields=4)
+    np.testing.assert_allclose(again.matrix_nm, sm.matrix_nm, atol=1e-6)
+
+
+def test_rotation_dof_units_are_degrees(senm_um):
+    """1° of M2 tilt ~ 0.117 m of M2 decenter in coma: the pivot distance ~ M2's 6.8 m radius."""
+    ratio = np.linalg.norm(senm_um[:, 3]) / np.linalg.norm(senm_um[:, 2])  # rx / dy, µm/µm
+    pivot_m = ratio * 1e-6 / np.deg2rad(1.0)
+    assert 5.0 < pivot_m < 9.0
+
+
+def test_bundled_loader_validates(tmp_path, sm):
+    good = tmp_path / "bundled.npy"
+    np.save(good, sm.matrix_nm)
+    b = C.SensitivityMatrix.from_bundled(good)
+    assert b.source == "bundled" and b.n_fields == 4
+    np.testing.assert_array_equal(b.matrix_nm, sm.matrix_nm)
+    np.testing.assert_allclose(b.field_points_deg, CORNERS_DEG, atol=1e-12)
+    bad = tmp_path / "bad.npy"
+    np.save(bad, sm.matrix_nm[:75])
+    with pytest.raises(ConfigError, match="shape"):
+        C.SensitivityMatrix.from_bundled(bad)
+    nan = sm.matrix_nm.copy()
+    nan[3, 4] = np.nan
+    np.save(bad, nan)
+    with pytest.raises(ConfigError, match="finite"):
+        C.SensitivityMatrix.from_bundled(bad)
+    with pytest.raises(ConfigError):
+        C.SensitivityMatrix.from_bundled(tmp_path / "missing.npy")
+
+
+def test_dof_yaml_is_consistent():
+    spec = C.load_dof_spec()
+    assert len(spec.names) == 50 and len(set(spec.names)) == 50
+    assert [i for i, u in enumerate(spec.units) if u == "deg"] == [3, 4, 8, 9]
+    assert set(spec.units) == {"um", "deg"}
+    np.testing.assert_allclose(spec.range[:10], STROKES)
+    assert np.all(spec.max_step <= spec.range) and np.all(spec.max_step > 0)
+    assert spec.names[1] == "M2_dx" and spec.index("Cam_dz") == 5
+    assert spec.index("M1M3_B1") == 10 and spec.index("M2_B20") == 49
+
+
+def test_band_wavelengths_follow_ts_ofc():
+    wl = {b: C.band_wavelength_um(b) for b in C.BANDS}
+    assert wl == {"u": 0.365, "g": 0.480, "r": 0.622, "i": 0.754, "z": 0.869, "y": 0.971,
+                  "ref": 0.5}
+    with pytest.raises(ConfigError):
+        C.band_wavelength_um("q")
+
+
+# ------------------------------------------------------------------ batoid cross-checks
+@pytest.mark.parametrize("band, wl_nm", [("r", 622.0), ("g", 480.0)])
+def test_intrinsic_matches_batoid(band, wl_nm):
+    """ts_ofc intrinsics (waves x band wavelength) = batoid's nominal wavefront at a corner."""
+    batoid = pytest.importorskip("batoid")
+    tel = batoid.Optic.fromYaml(f"LSST_{band}.yaml")
+    fx, fy = CORNERS_DEG[1]
+    ref = batoid.zernike(tel, np.deg2rad(fx), np.deg2rad(fy), wl_nm * 1e-9, jmax=22,
+                         eps=0.612, nx=128)[4:23] * wl_nm
+    got = C.intrinsic_zernikes_nm(band, CORNERS_DEG[1:2])[0]
+    assert np.max(np.abs(ref)) > 80.0  # a real, large design aberration at the corner
+    assert np.max(np.abs(got - ref)) < 12.0
+
+
+def test_sensitivity_sign_and_scale_vs_batoid(sm):
+    """A (wavefront convention) = batoid finite differences under the documented mapping."""
+    batoid = pytest.importorskip("batoid")
+    tel = batoid.Optic.fromYaml("LSST_r.yaml")
+    c = 1  # corner R04_SW0
+    fx, fy = np.deg2rad(CORNERS_DEG[c])
+
+    def zk_nm(optic):
+        return batoid.zernike(optic, fx, fy, 622e-9, jmax=22, eps=0.612, nx=128)[4:23] * 622.0
+
+    z0 = zk_nm(tel)
+    cases = [
+        (0, 50.0, tel.withGloballyShiftedOptic("M2", [0, 0, 50e-6])),
+        (1, 200.0, tel.withGloballyShiftedOptic("M2", [200e-6, 0, 0])),
+        (3, 0.005, tel.withLocallyRotatedOptic("M2", batoid.RotX(np.deg2rad(0.005)))),
+        (5, 20.0, tel.withGloballyShiftedOptic("LSSTCamera", [0, 0, 20e-6])),
+        (9, 0.01, tel.withLocallyRotatedOptic("LSSTCamera", batoid.RotY(np.deg2rad(0.01)))),
+    ]
+    for idx, amount, optic in cases:
+        d = (zk_nm(optic) - z0) / amount
+        col = sm.matrix_nm[19 * c : 19 * c + 19, idx]
+        ratio = d @ col / (col @ col)
+        corr = d @ col / np.linalg.norm(d) / np.linalg.norm(col)
+        assert 0.98 < ratio < 1.02, (idx, ratio)
+        assert corr > 0.999, (idx, corr)
+
+
+def test_bending_sign_vs_batoid(sm):
+    """M2 bending mode 1 as a +sag Zernike on M2 gives +A's column (j<=28 part only)."""
+    batoid = pytest.importorskip("batoid")
+    fits = pytest.importorskip("astropy.io.fits")
+    bend_dir = Path(C.__file__).resolve().parents[1] / "sim" / "data" / "bending"
+    zk_file = bend_dir / "M2_bend_zk.fits.gz"
+    if not zk_file.exists():
+        pytest.skip("bending tables not present")
+    tel = batoid.Optic.fromYaml("LSST_r.yaml")
+    fx, fy = np.deg2rad(CORNERS_DEG[1])
+    sag = np.asarray(fits.getdata(zk_file), dtype=float)[0]  # m per µm of mode 1
+    bent = tel.withSurface("M2", batoid.Sum([tel["M2"].surface,
+                                             batoid.Zernike(sag, R_outer=1.71)]))
+    d = (batoid.zernike(bent, fx, fy, 622e-9, jmax=22, eps=0.612, nx=128)
+         - batoid.zernike(tel, fx, fy, 622e-9, jmax=22, eps=0.612, nx=128))[4:23] * 622.0
+    col = sm.matrix_nm[19:38, 30]
+    assert 0.9 < d @ col / (col @ col) < 1.15
+    assert d @ col / np.linalg.norm(d) / np.linalg.norm(col) > 0.999
+
+
+# ------------------------------------------------------------------ estimation
+def test_gain1_recovers_observable_part(sm, weights):
+    """The 12-mode estimate equals an independent lstsq in the same normalised modes."""
+    x = perturbation()
+    intr = C.intrinsic_vector_nm("r")
+    y = intr + sm.matrix_nm @ x
+    est = C.OFCSolver(sm, band="r").estimate(y)
+    assert est.valid and est.status == "ok" and est.n_modes_used == 12
+
+    r = sm.matrix_nm @ x
+    an = sm.matrix_nm * weights[None, :]
+    _, vt = kept_modes(an, 12)
+    c, *_ = np.linalg.lstsq(an @ vt.T, r, rcond=None)
+    expected = weights * (vt.T @ c)
+    np.testing.assert_allclose(est.dof_error, expected, atol=1e-9 * np.abs(expected).max())
+    # ... which is the projection of the true normalised state onto those modes
+    np.testing.assert_allclose(est.dof_error / weights, vt.T @ (vt @ (x / weights)),
+                               atol=1e-9 * np.abs(x / weights).max())
+    # and it explains the wavefront: residual << input
+    fit = r - sm.matrix_nm @ est.dof_error
+    assert est.wavefront_rms_nm == pytest.approx(rms4(r), rel=1e-9)
+    assert est.wavefront_rms_nm > 400.0
+    assert est.fit_residual_rms_nm == pytest.approx(rms4(fit), rel=1e-9)
+    assert est.fit_residual_rms_nm < 0.05 * est.wavefront_rms_nm
+
+
+def test_full_rank_subset_recovers_exactly(sm):
+    """With the well-observed DoFs only and all their modes kept, x is recovered exactly."""
+    mask = np.zeros(50, bool)
+    mask[[0, 3, 4, 5, 8, 9, 10, 11, 30, 31]] = True
+    x = np.zeros(50)
+    x[[0, 3, 5, 9, 10, 31]] = [30.0, 0.003, -25.0, 0.004, 0.08, -0.04]
+    s = solver(sm, dof_mask=mask, n_modes=int(mask.sum()))
+    est = s.estimate(sm.matrix_nm @ x)
+    assert est.valid, est.status
+    np.testing.assert_allclose(est.dof_error, x, rtol=1e-6, atol=1e-9)
+    assert est.fit_residual_rms_nm < 1e-6
+
+
+def test_tikhonov_matches_normal_equations(sm, weights):
+    x = perturbation()
+    r = sm.matrix_nm @ x
+    alpha = 1e-3
+    est = solver(sm, method="tikhonov", alpha=alpha).estimate(r)
+    assert est.valid
+    an = sm.matrix_nm * weights[None, :]
+    s0 = np.linalg.svd(an, compute_uv=False)[0]
+    z = np.linalg.solve(an.T @ an + (alpha * s0) ** 2 * np.eye(50), an.T @ r)
+    np.testing.assert_allclose(est.dof_error, weights * z, atol=1e-7 * np.abs(weights * z).max())
+    assert 0 < est.n_modes_used < 50
+
+
+def test_allow_partial_drops_invalid_corner_rows(sm):
+    x = perturbation()
+    y = sm.matrix_nm @ x
+    y[19:38] = np.nan  # corner R04 unusable
+    valid = [True, False, True, True]
+    est = solver(sm, allow_partial=True).estimate(y, valid)
+    assert est.valid and est.corners_used == (True, False, True, True)
+    keep = np.repeat(valid, 19)
+    three = C.SensitivityMatrix(sm.matrix_nm[keep], CORNERS_DEG[[0, 2, 3]])
+    ref = solver(three, intrinsic_nm=np.zeros(57)).estimate(y[keep])
+    np.testing.assert_allclose(est.dof_error, ref.dof_error, rtol=1e-12, atol=1e-15)
+    assert est.wavefront_rms_nm == pytest.approx(rms4(y[keep], 3))
+    assert np.all(np.isnan(est.wavefront_nm[19:38]))
+
+
+# ------------------------------------------------------------------ closed loop
+def _loop(s: C.OFCSolver, sm: C.SensitivityMatrix, x0: np.ndarray, n: int):
+    x = x0.copy()
+    rms, results = [], []
+    for _ in range(n):
+        res = s.step(sm.matrix_nm @ x)
+        assert res.valid, res.status
+        x = x + res.dof  # apply the correction to the "telescope"
+        rms.append(res.wavefront_rms_nm)
+        results.append(res)
+    return np.array(rms), results, x
+
+
+def test_closed_loop_proportional_is_monotonic(sm):
+    s = solver(sm, kp=0.18, ki=0.0, max_step=None, clip_range=None)
+    rms, res, _ = _loop(s, sm, perturbation(), 40)
+    assert np.all(np.diff(rms) <= 1e-9)
+    assert rms[1] < 0.85 * rms[0]
+    assert res[0].predicted_residual_rms_nm == pytest.approx(rms[1], rel=1e-9)
+    assert rms[-1] < 0.05 * rms[0]
+
+
+def test_closed_loop_pi_follows_second_order_recursion(sm, weights):
+    """kp 0.18, ki 0.022: every observable mode obeys c+ = c - kp c - ki sum(c)."""
+    kp, ki, n = 0.18, 0.022, 60
+    x0 = perturbation()
+    s = solver(sm, kp=kp, ki=ki, max_step=None, clip_range=None)
+    rms, _, _ = _loop(s, sm, x0, n)
+    r0 = sm.matrix_nm @ x0
+    u12, _ = kept_modes(sm.matrix_nm * weights[None, :], 12)
+    a = np.linalg.norm(u12.T @ r0)
+    b = np.linalg.norm(r0 - u12 @ (u12.T @ r0))
+    c, total, expected = 1.0, 0.0, []
+    for _ in range(n):
+        expected.append(np.sqrt(c**2 * a**2 + b**2) / 2.0)
+        total += c
+        c = c - kp * c - ki * total
+    np.testing.assert_allclose(rms, expected, rtol=1e-6)
+    assert rms[1] < rms[0]  # the correction has the right sign
+    assert rms[-1] < 1.05 * b / 2.0  # converged to the unobservable floor
+
+
+def test_step_limit_and_range_clip(sm):
+    spec = C.load_dof_spec()
+    big = np.zeros(50)
+    big[0], big[5], big[10] = 3000.0, -2000.0, 0.3  # M2 dz, camera dz, M1M3 mode 1
+    s = solver(sm, kp=1.0, ki=0.0, dof_mask=np.arange(50) < 30)
+    _, res, _ = _loop(s, sm, big, 3)
+    for r in res:
+        assert np.all(np.abs(r.dof) <= spec.max_step * (1 + 1e-12))
+        assert np.all(np.abs(r.dof_total) <= spec.range * (1 + 1e-12))
+    first = res[0]
+    assert first.clipped[10] and np.isclose(abs(first.dof[10]), spec.max_step[10])
+    for i in np.flatnonzero(first.clipped):  # every clipped DoF sits exactly at a limit
+        assert np.isclose(abs(first.dof[i]), spec.max_step[i]) or np.isclose(
+            abs(first.dof_total[i]), spec.range[i])
+    assert abs(first.dof_error[10]) > spec.max_step[10]  # the limit really was binding
+
+    s = solver(sm, kp=0.18, ki=0.022, max_step=1e-4)
+    r = s.step(sm.matrix_nm @ big)
+    assert r.clipped.any()
+    assert np.all(s.integral[r.clipped] == 0.0)  # no wind-up while saturated
+    np.testing.assert_allclose(s.integral[~r.clipped], r.dof_error[~r.clipped])
+
+    lim = np.full(50, 10.0)
+    s = solver(sm, kp=1.0, ki=0.0, max_step=None, clip_range=lim)
+    _, res, _ = _loop(s, sm, big, 4)
+    for r in res:
+        assert np.all(np.abs(r.dof_total) <= 10.0 + 1e-12)
+    assert np.isclose(abs(res[-1].dof_total[5]), 10.0)
+    np.testing.assert_allclose(sum(r.dof for r in res), res[-1].dof_total, atol=1e-9)
+
+
+def test_dof_mask_keeps_excluded_dofs_at_zero(sm):
+    mask = np.ones(50, bool)
+    mask[[3, 4, 8, 9]] = False  # no tilts
+    mask[20:30] = False  # no high M1M3 modes
+    s = solver(sm, dof_mask=mask)
+    _, res, _ = _loop(s, sm, perturbation(), 5)
+    for r in res:
+        assert np.all(r.dof[~mask] == 0.0) and np.all(r.dof_total[~mask] == 0.0)
+        assert np.all(r.dof_error[~mask] == 0.0)
+    assert np.any(res[-1].dof_total[mask] != 0.0)
+    with pytest.raises(ConfigError):
+        solver(sm, dof_mask=np.zeros(50, bool))
+
+
+def test_set_band_changes_intrinsic(sm):
+    s = C.OFCSolver(sm, band="r")
+    y = C.intrinsic_vector_nm("g")
+    assert s.estimate(y).wavefront_rms_nm > 10.0
+    s.set_band("g")
+    assert s.band == "g" and s.estimate(y).wavefront_rms_nm < 1e-9
+
+
+def test_reset_clears_state(sm):
+    s = solver(sm)
+    y = sm.matrix_nm @ perturbation()
+    first = s.step(y)
+    s.step(y)
+    assert np.any(s.dof_total != 0) and np.any(s.integral != 0)
+    s.reset()
+    assert np.all(s.dof_total == 0) and np.all(s.integral == 0) and s.n_steps == 0
+    again = s.step(y)
+    np.testing.assert_array_equal(again.dof, first.dof)
+
+
+# ------------------------------------------------------------------ refusal
+@pytest.mark.parametrize(
+    "kw, y_fn, valid, tag",
+    [
+        ({}, lambda y: np.append(y, 0.0), None, "bad_shape"),
+        ({}, lambda y: y[:75], None, "bad_shape"),
+        ({}, lambda y: y.reshape(19, 4), None, "bad_shape"),
+        ({}, lambda y: ["a"] * 76, None, "bad_shape"),
+        ({}, lambda y: y, [True, True, True], "bad_shape"),
+        ({}, lambda y: np.where(np.arange(76) == 40, np.nan, y), None, "non_finite"),
+        ({}, lambda y: np.where(np.arange(76) == 3, np.inf, y), None, "non_finite"),
+        ({}, lambda y: y, [True, False, True, True], "corner_invalid"),
+        ({"allow_partial": True}, lambda y: y, [False] * 4, "no_valid_corners"),
+        ({"n_modes": 50}, lambda y: y, None, "ill_conditioned"),
+        ({"n_modes": 19, "allow_partial": True, "max_condition": 1e5}, lambda y: y,
+         [True, False, False, False],
+         "ill_conditioned"),
+    ],
+)
+def test_invalid_inputs_refused(sm, kw, y_fn, valid, tag):
+    s = solver(sm, **kw)
+    y = y_fn(sm.matrix_nm @ perturbation())
+    res = s.step(y, valid)
+    assert not res.valid
+    assert res.status.startswith(tag + ":"), res.status
+    assert np.all(res.dof == 0.0) and np.all(res.dof_total == 0.0)
+    assert np.all(s.integral == 0.0) and s.n_steps == 0
+
+
+def test_refusal_names_the_corner(sm):
+    res = solver(sm).step(sm.matrix_nm @ perturbation(), [True, False, True, True])
+    assert "R04_SW0" in res.status and "allow_partial" in res.status
+    y = sm.matrix_nm @ perturbation()
+    y[60] = np.nan  # corner 3 = R44_SW0
+    res = solver(sm).step(y)
+    assert "R44_SW0" in res.status
+
+
+def test_invalid_visit_leaves_state_alone(sm):
+    s = solver(sm)
+    y = sm.matrix_nm @ perturbation()
+    s.step(y)
+    before = (s.dof_total.copy(), s.integral.copy())
+    bad = y.copy()
+    bad[0] = np.nan
+    res = s.step(bad)
+    assert not res.valid and np.all(res.dof == 0)
+    np.testing.assert_array_equal(res.dof_total, before[0])
+    np.testing.assert_array_equal(s.integral, before[1])
+
+
+# ------------------------------------------------------------------ observability
+def test_observability_null_space(sm, weights):
+    rep = C.observability(sm, rel_tol=1e-6)
+    assert rep.singular_values.shape == (50,)
+    assert np.all(np.diff(rep.singular_values) <= 0)
+    an = sm.matrix_nm * weights[None, :]
+    ref = np.linalg.svd(an, compute_uv=False)
+    np.testing.assert_allclose(rep.singular_values, ref, rtol=1e-10)
+    assert rep.n_near_null == int(np.sum(ref / ref[0] < 1e-6))
+    for v in rep.null_directions_norm:
+        assert np.linalg.norm(an @ v) < 1e-6 * ref[0]
+    # in the solver's normalised space the camera's lateral shift is the blindest direction
+    names = C.load_dof_spec().names
+    _, _, vt = np.linalg.svd(an)
+    assert names[int(np.argmax(np.abs(vt[-1])))] in ("Cam_dx", "Cam_dy")
+    assert "Cam_d" in rep.describe(49, names, top=1)
+    np.testing.assert_allclose(np.abs(rep.null_directions_dof[-1]), np.abs(weights * vt[-1]),
+                               atol=1e-9 * np.abs(weights * vt[-1]).max())
+
+    one = C.observability(sm, corner_valid=[True, False, False, False])
+    assert one.n_near_null >= 50 - 19  # 19 equations cannot pin 50 unknowns
