@@ -68,18 +68,19 @@ def compensate(image: np.ndarray, centre_xy: tuple[float, float], mapping: Image
             reduced pupil unit, and per unit squared), shape (5, npoints); see
             :meth:`.zernike.ZernikeBasis.derivative_fields`.
     """
-    c = mapping.c_px_per_nm
+    c = np.float32(mapping.c_px_per_nm)
     gx, gy, hxx, hxy, hyy = derivs
-    col = (centre_xy[0] + mapping.x_px) + c * gx
-    row = (centre_xy[1] + mapping.y_px) + c * gy
-    jac = (mapping.jxx + c * hxx) * (mapping.jyy + c * hyy) - \
-          (mapping.jxy + c * hxy) * (mapping.jyx + c * hxy)
-    ratio = jac / mapping.det
-    tr = mapping.transmitted
-    min_ratio = float(ratio[tr].min()) if tr.any() else 1.0
-    raw = sample_bilinear(image, row, col) * np.abs(jac)
+    col = (np.float32(centre_xy[0]) + c * gx) + mapping.x_px
+    row = (np.float32(centre_xy[1]) + c * gy) + mapping.y_px
+    jac = (mapping.jxx + c * hxx) * (mapping.jyy + c * hyy)
+    jac -= (mapping.jxy + c * hxy) * (mapping.jyx + c * hxy)
+    tr = mapping.transmitted_index
+    min_ratio = float((jac[tr] * mapping.inv_det_transmitted).min()) if tr.size else 1.0
+    raw = sample_bilinear(image, row, col)
+    raw *= np.abs(jac)
     # Flux per unit pupil area, normalised so the transmitted pupil averages 1: each image
     # is normalised to its own flux (split sensor: different stars, paper §3.4).
-    level = raw.sum() / max(int(tr.sum()), 1)
-    intensity = raw / level if level > 0 else raw
-    return Compensated(intensity, min_ratio <= 0.0, min_ratio)
+    level = float(raw.sum(dtype=np.float64)) / max(tr.size, 1)
+    if level > 0:
+        raw *= 1.0 / level
+    return Compensated(raw, min_ratio <= 0.0, min_ratio)

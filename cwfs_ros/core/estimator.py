@@ -206,16 +206,18 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     pos = np.searchsorted(cand, region)
 
     def take(m: ImageMapping) -> ImageMapping:
-        return ImageMapping(m.side, m.x_px[pos], m.y_px[pos], m.jxx[pos], m.jxy[pos],
-                            m.jyx[pos], m.jyy[pos], m.transmitted[pos], m.c_px_per_nm,
-                            m.fit_rms_px)
+        # float32 halves the memory traffic of the per-iteration compensation; positions
+        # keep ~1e-5 px precision on a 200 px stamp.
+        f32 = [np.ascontiguousarray(a[pos], dtype=np.float32)
+               for a in (m.x_px, m.y_px, m.jxx, m.jxy, m.jyx, m.jyy)]
+        return ImageMapping(m.side, *f32, m.transmitted[pos], m.c_px_per_nm, m.fit_rms_px)
 
     m_in, m_ex = take(m_in), take(m_ex)
     x, y = x[pos], y[pos]
     mask_in, mask_ex = m_in.transmitted, m_ex.transmitted
     common = mask_in & mask_ex
     weight = np.where(mask_in ^ mask_ex, 0.0, 1.0)
-    basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration)
+    basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration, dtype=np.float32)
     if algo.solver == "exp":
         solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)
     elif algo.solver == "fft":
@@ -381,6 +383,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     if algo.smooth_sigma_px > 0:
         img_in = gaussian_filter(img_in, algo.smooth_sigma_px, mode="constant")
         img_ex = gaussian_filter(img_ex, algo.smooth_sigma_px, mode="constant")
+    img_in = img_in.astype(np.float32)
+    img_ex = img_ex.astype(np.float32)
 
     jmax = algo.jmax
     w_comp = np.zeros(jmax)
