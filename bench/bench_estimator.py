@@ -123,20 +123,21 @@ def bench_batoid(solvers: list[str], n: int) -> None:
 def bench_linearity(solvers: list[str]) -> None:
     from cwfs_ros.sim.paraxial import render_paraxial_pair
 
-    print("\n== linearity: single terms on the paraxial f/1.23 lens, 1 mm, 2e6 photons; "
-          "largest amplitude (um) up to which every step is recovered within 5%")
+    print("\n== linearity: single terms on the paraxial f/1.23 lens, 1 mm, 5e6 photons; "
+          "largest amplitude (um) up to which every step 0.25..1.5 um is recovered within 5% "
+          "(or 10 nm, the photon-noise floor, whichever is larger); 0 = fails at 0.25 um")
     inst = load_instrument("paraxial")
-    amps = np.array([0.1, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5]) * 1000.0
+    amps = np.array([0.25, 0.5, 0.75, 1.0, 1.25, 1.5]) * 1000.0
     for s in solvers:
         line = []
         for j in range(4, 23):
             ok_to = 0.0
             for a in amps:
-                i, e = render_paraxial_pair(inst, {j: a}, npix=120, n_photons=2e6,
+                i, e = render_paraxial_pair(inst, {j: a}, npix=120, n_photons=5e6,
                                             rng=np.random.default_rng(j))
                 r = estimate_wavefront(i, e, field_intra_deg=(0, 0), field_extra_deg=(0, 0),
                                        instrument=inst, solver=s)
-                if r.caustic or abs(r.zernikes_nm[j - 4] - a) > 0.05 * a:
+                if r.caustic or abs(r.zernikes_nm[j - 4] - a) > max(0.05 * a, 10.0):
                     break
                 ok_to = a / 1000.0
             line.append(f"Z{j}:{ok_to:g}")
