@@ -130,7 +130,7 @@ def test_fft_matrix_equals_literal_iteration() -> None:
     x, y = gx.ravel()[region], gy.ravel()[region]
     rr = np.hypot(x, y)
     solver = IterativeFFT((n, n), h, region, zernike_basis(x, y, 22, 0.61),
-                          (rr <= 1) & (rr >= 0.61), inner_iterations=6)
+                          (rr <= 1) & (rr >= 0.61), inner_iterations=6, dtype=np.float64)
     d = np.random.default_rng(0).normal(size=region.size)
     literal = solver.fit(solver.wavefront_map(d, 2.0))
     np.testing.assert_allclose(solver.solve(d, 2.0), literal, atol=1e-12 * np.abs(literal).max())

@@ -216,7 +216,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     x, y = x[pos], y[pos]
     mask_in, mask_ex = m_in.transmitted, m_ex.transmitted
     common = mask_in & mask_ex
-    weight = np.where(mask_in ^ mask_ex, 0.0, 1.0)
+    weight = np.where(mask_in ^ mask_ex, 0.0, 1.0).astype(np.float32)
     basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration, dtype=np.float32)
     if algo.solver == "exp":
         solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)

@@ -43,9 +43,9 @@ class SeriesExpansion:
         self.jmax = basis.jmax
         gx, gy = basis.dx[1:, pupil], basis.dy[1:, pupil]
         # M_ji over the pupil for j, i = 2..jmax (piston has no gradient and is not solved).
-        m = gx @ gx.T + gy @ gy.T
+        m = gx.astype(float) @ gx.T.astype(float) + gy.astype(float) @ gy.T.astype(float)
         self._m_inv = np.linalg.inv(m)
-        self._z = basis.z[1:]
+        self._z = basis.z[1:]  # kept in the basis dtype: the signal is cast, not the basis
 
     def solve(self, d_intensity: np.ndarray, kappa: float) -> np.ndarray:
         """Residual wavefront Z1..Z_jmax (nm) from ``I_intra - I_extra`` on the points.
@@ -53,7 +53,7 @@ class SeriesExpansion:
         ``F_j = sum(S Z_j)`` with ``S = -dI / kappa`` carries the edge term, so by eq. (16)
         ``sum_i M_ji W_i = -F_j`` with the sign of the Laplacian convention used here.
         """
-        f = self._z @ d_intensity / kappa
+        f = (self._z @ d_intensity.astype(self._z.dtype)).astype(float) / kappa
         out = np.zeros(self.jmax)
         out[1:] = self._m_inv @ f
         return out
@@ -83,13 +83,17 @@ class IterativeFFT:
         basis: Zernikes at the computation points.
         pupil: pupil mask on the computation points (the Zernike fit region).
         inner_iterations: number of Roddier iterations.
+        dtype: storage of the precomputed matrix (float32 halves the memory traffic; the
+            signal's own noise is far above its precision).
     """
 
     name = "fft"
 
     def __init__(self, shape: tuple[int, int], spacing: float, region: np.ndarray,
-                 basis: ZernikeBasis, pupil: np.ndarray, inner_iterations: int = 6) -> None:
+                 basis: ZernikeBasis, pupil: np.ndarray, inner_iterations: int = 6,
+                 dtype: type = np.float32) -> None:
         self.shape = shape
+        self._dtype = dtype
         self.jmax = basis.jmax
         self.region = region
         self.inner = int(inner_iterations)
@@ -172,11 +176,11 @@ class IterativeFFT:
             acc += u
         rows = acc.reshape(self.jmax, n)[:, self.region]
         rows[0] = 0.0
-        return np.ascontiguousarray(rows)
+        return np.ascontiguousarray(rows, dtype=self._dtype)
 
     def solve(self, d_intensity: np.ndarray, kappa: float) -> np.ndarray:
         """Residual wavefront Z1..Z_jmax (nm) from ``I_intra - I_extra`` on the points."""
-        return self._matrix @ (-d_intensity / kappa)
+        return (self._matrix @ d_intensity.astype(self._dtype)).astype(float) / -kappa
 
 
 class LeastSquares:
@@ -211,12 +215,13 @@ class LeastSquares:
         ix, iy = gx.ravel()[region], gy.ravel()[region]
         b = ix * basis.dx[1:] + iy * basis.dy[1:] + i0 * (basis.dxx[1:] + basis.dyy[1:])
         # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix.
-        self._matrix = np.zeros((self.jmax, region.size))
+        b = b.astype(float)
+        self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
         self._matrix[1:] = -np.linalg.solve(b @ b.T, b)
 
     def solve(self, d_intensity: np.ndarray, kappa: float) -> np.ndarray:
         """Residual wavefront Z1..Z_jmax (nm) from ``I_intra - I_extra`` on the points."""
-        return self._matrix @ d_intensity / kappa
+        return (self._matrix @ d_intensity.astype(np.float32)).astype(float) / kappa
 
 
 SOLVERS = {"exp": SeriesExpansion, "fft": IterativeFFT, "lsq": LeastSquares}

@@ -151,7 +151,8 @@ class ZernikeBasis:
         """
         c = np.asarray(coeffs, float)[: self.jmax]
         mono = c @ self.coeffs_xy[: c.size]
-        return (mono @ self._ops) @ self.monomials
+        # Cast the small (5 x n_mono) factor, never the big monomial array.
+        return (mono @ self._ops).astype(self.monomials.dtype) @ self.monomials
 
 
 def zernike_basis(x: np.ndarray, y: np.ndarray, jmax: int = 22, eps: float = 0.61,
