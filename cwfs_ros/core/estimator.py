@@ -156,6 +156,10 @@ class PairGeometry:
     intrinsic_nm: np.ndarray
     field_mid_deg: tuple[float, float]
     outer_radius_px: float
+    centroid_model_intra: np.ndarray
+    centroid_model_extra: np.ndarray
+    mean_gradient_intra: np.ndarray
+    mean_gradient_extra: np.ndarray
     build_time_s: float = 0.0
 
     def pupil_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
@@ -216,7 +220,16 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     x, y = x[pos], y[pos]
     mask_in, mask_ex = m_in.transmitted, m_ex.transmitted
     common = mask_in & mask_ex
-    weight = np.where(mask_in ^ mask_ex, 0.0, 1.0).astype(np.float32)
+    # Signal weight: zero where only one image is transmitted, and over a guard band around
+    # those places, because the blurred edge of the image that stops there reaches a couple
+    # of pixels into the common pupil, where the other image is still bright (paper §3.4's
+    # common mask, made robust to edge blur).  Edges the two pupils share keep their signal.
+    only_one = np.zeros(n * n, bool)
+    only_one[region] = mask_in ^ mask_ex
+    guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
+    gy_, gx_ = np.mgrid[-guard:guard + 1, -guard:guard + 1]
+    near = binary_dilation(only_one.reshape(n, n), structure=gx_**2 + gy_**2 <= guard**2)
+    weight = np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
     basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration, dtype=np.float32)
     if algo.solver == "exp":
         solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)
@@ -229,13 +242,26 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))
     intrinsic = design_zernikes_nm(inst, band, wavelength_nm, mid, algo.jmax)
-    outer = float(max(np.hypot(m.x_px[m.transmitted], m.y_px[m.transmitted]).max()
+    # Radius of the circle around the flux centroid that holds the whole donut (off axis the
+    # donut is neither centred on the chief ray nor round).
+    outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
+                               m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
                       for m in (m_in, m_ex)))
     for arr in (x, y, mask_in, mask_ex, common, weight, region):
         arr.setflags(write=False)
+    def mean_gradient(mask: np.ndarray) -> np.ndarray:
+        """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
+        return np.stack([basis.dx[:, mask].astype(float).mean(axis=1),
+                         basis.dy[:, mask].astype(float).mean(axis=1)])
+
+    def centroid(m: ImageMapping) -> np.ndarray:
+        return np.array([float(m.x_px[m.transmitted].mean()),
+                         float(m.y_px[m.transmitted].mean())])
+
     return PairGeometry((n, n), spacing, region, x, y, mask_in, mask_ex, common, weight,
                         m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
-                        time.perf_counter() - t0)
+                        centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
+                        mean_gradient(mask_ex), time.perf_counter() - t0)
 
 
 # -- result -------------------------------------------------------------------------------
@@ -363,18 +389,21 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     geom = pair_geometry(inst, band, wl, fi, fe, defocus, algo)
     geom_time = 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
 
-    margin = algo.boundary_px + 1
+    # The donut plus its blurred edge must lie inside the stamp; the computation region may
+    # extend beyond it (samples outside a stamp read zero flux, which is what is there).
+    margin = 2.0 + algo.smooth_sigma_px
     don_in = prepare_donut(a_in, name="intra", outer_radius_px=geom.outer_radius_px,
                            margin_px=margin)
     don_ex = prepare_donut(a_ex, name="extra", outer_radius_px=geom.outer_radius_px,
                            margin_px=margin)
-    # Align each image so its centroid falls where the unperturbed mapping puts the flux
-    # centroid of its illuminated pupil (the common tip/tilt is not measurable).
+    # Align each image so that its centroid falls where the mapping, with the current
+    # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
+    # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any
+    # term on a vignetted pupil; different for the two halves of a split sensor.  Tip/tilt
+    # itself then has no effect and is not measured (it is solved for as a nuisance term).
     m_in, m_ex = geom.mapping_intra, geom.mapping_extra
-    centre_in = (don_in.centroid_xy[0] - m_in.x_px[geom.mask_intra].mean(),
-                 don_in.centroid_xy[1] - m_in.y_px[geom.mask_intra].mean())
-    centre_ex = (don_ex.centroid_xy[0] - m_ex.x_px[geom.mask_extra].mean(),
-                 don_ex.centroid_xy[1] - m_ex.y_px[geom.mask_extra].mean())
+    base_in = np.array(don_in.centroid_xy) - geom.centroid_model_intra
+    base_ex = np.array(don_ex.centroid_xy) - geom.centroid_model_extra
 
     # A light Gaussian blur makes the images smooth on the scale of the pupil sampling, so
     # that point-sampling them (compensation) integrates flux without a dependence on where
@@ -397,6 +426,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     idx = np.arange(1, jmax + 1)
     for j_stage in algo.schedule():
         derivs = geom.basis.derivative_fields(w_comp)
+        centre_in = base_in - m_in.c_px_per_nm * (geom.mean_gradient_intra @ w_comp)
+        centre_ex = base_ex - m_ex.c_px_per_nm * (geom.mean_gradient_extra @ w_comp)
         c_in = compensate(img_in, centre_in, m_in, derivs)
         c_ex = compensate(img_ex, centre_ex, m_ex, derivs)
         if c_in.caustic or c_ex.caustic:
@@ -406,7 +437,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         last = (c_in.intensity, c_ex.intensity)
         d_i = (c_in.intensity - c_ex.intensity) * geom.weight
         w_res = geom.solver.solve(d_i, geom.kappa)
-        w_res[0] = 0.0  # piston has no signal
+        w_res[:3] = 0.0  # piston has no signal; tip/tilt is taken out by the alignment
         estimate = w_comp + w_res
         history.append(estimate.copy())
         rms = float(np.sqrt(np.mean(w_res[3:] ** 2)))
@@ -415,6 +446,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             converged = True
             break
         w_comp = w_comp + algo.feedback_gain * np.where(idx <= j_stage, w_res, 0.0)
+        w_comp[:3] = 0.0
     if not history:
         # Caustic already at the first compensation: nothing trustworthy was estimated.
         estimate = np.zeros(jmax)
