@@ -269,6 +269,17 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _register_ros_subcommands() -> None:
+    # bringup / node live with the launch code (light import: stdlib + cwfs_ros.paths).
+    from .launch import add_bringup_parser, add_node_parser
+
+    subcommand(add_bringup_parser)
+    subcommand(add_node_parser)
+
+
+_register_ros_subcommands()
+
+
 def format_result(result: Any) -> str:
     """Human-readable table of Z4..Z22 plus a status line."""
     lines = [

@@ -59,14 +59,40 @@ def kept_modes(an: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------ data / loading
 def test_ts_ofc_matrix_reproduces_corner_npy(sm, senm_um):
-    """Evaluating the double-Zernike yaml at the SW0 corners gives the 76x50 npy (µm, -sign)."""
+    """Evaluating the double-Zernike yaml at the SW0 corners gives the 76x50 npy (µm, -sign).
+
+    In ts_ofc's own DoF convention exactly; in the default (batoid_rubin) convention with the
+    columns of M2/camera dz, dx, rx negated.
+    """
     assert sm.matrix_nm.shape == (76, 50)
     assert sm.source == "ts_ofc"
-    np.testing.assert_allclose(sm.matrix_nm, -1000.0 * senm_um, rtol=0, atol=1e-6)
+    plain = C.SensitivityMatrix.from_ts_ofc(dof_convention="ts_ofc")
+    np.testing.assert_allclose(plain.matrix_nm, -1000.0 * senm_um, rtol=0, atol=1e-6)
+    flip = np.ones(50)
+    flip[[0, 1, 3, 5, 6, 8]] = -1.0
+    np.testing.assert_allclose(sm.matrix_nm, -1000.0 * senm_um * flip, rtol=0, atol=1e-6)
     np.testing.assert_allclose(sm.field_points_deg, CORNERS_DEG, atol=1e-12)
     again = C.SensitivityMatrix.from_npy(OFC / "senM_corners_76x50_um_per_dof.npy",
-                                         units="um", convention="ts_ofc", n_fields=4)
+                                         units="um", convention="ts_ofc", n_fields=4,
+                                         dof_convention="ts_ofc")
     np.testing.assert_allclose(again.matrix_nm, sm.matrix_nm, atol=1e-6)
+
+
+def test_dof_convention_conversion():
+    assert C.TS_OFC_FLIPPED_DOF == (0, 1, 3, 5, 6, 8)
+    sim = pytest.importorskip("cwfs_ros.sim")
+    assert sim.TS_OFC_FLIPPED_DOF == C.TS_OFC_FLIPPED_DOF
+    x = np.arange(1.0, 51.0)
+    y = C.convert_dof_convention(x, "ts_ofc", "batoid_rubin")
+    assert y[0] == -1 and y[2] == 3 and y[8] == -9 and y[10] == 11
+    np.testing.assert_array_equal(C.convert_dof_convention(y, "batoid_rubin", "ts_ofc"), x)
+    np.testing.assert_array_equal(C.convert_dof_convention(x, "ts_ofc", "ts_ofc"), x)
+    m = np.ones((3, 50))
+    assert np.all(C.convert_dof_convention(m, "ts_ofc", "batoid_rubin")[:, 5] == -1)
+    with pytest.raises(ConfigError):
+        C.convert_dof_convention(x, "ocs", "ts_ofc")
+    with pytest.raises(ConfigError):
+        C.convert_dof_convention(np.ones(49), "ts_ofc", "batoid_rubin")
 
 
 def test_rotation_dof_units_are_degrees(senm_um):
@@ -82,7 +108,10 @@ def test_bundled_loader_validates(tmp_path, sm):
     b = C.SensitivityMatrix.from_bundled(good)
     assert b.source == "bundled" and b.n_fields == 4
     np.testing.assert_array_equal(b.matrix_nm, sm.matrix_nm)
-    np.testing.assert_allclose(b.field_points_deg, CORNERS_DEG, atol=1e-12)
+    # the bundled matrix is evaluated at the corner mid-points (SW0/SW1), where the
+    # estimator reports
+    np.testing.assert_allclose(b.field_points_deg, C.corner_mid_field_points_deg(), atol=1e-12)
+    np.testing.assert_allclose(b.field_points_deg[0], [-1.2225972222222222, -1.1903055555555555])
     bad = tmp_path / "bad.npy"
     np.save(bad, sm.matrix_nm[:75])
     with pytest.raises(ConfigError, match="shape"):
@@ -129,8 +158,9 @@ def test_intrinsic_matches_batoid(band, wl_nm):
     assert np.max(np.abs(got - ref)) < 12.0
 
 
-def test_sensitivity_sign_and_scale_vs_batoid(sm):
-    """A (wavefront convention) = batoid finite differences under the documented mapping."""
+def test_sensitivity_sign_and_scale_vs_batoid():
+    """A (wavefront sign, ts_ofc DoF convention) = batoid finite differences, plain frame."""
+    sm = C.SensitivityMatrix.from_ts_ofc(dof_convention="ts_ofc")
     batoid = pytest.importorskip("batoid")
     tel = batoid.Optic.fromYaml("LSST_r.yaml")
     c = 1  # corner R04_SW0
@@ -381,11 +411,11 @@ def test_invalid_inputs_refused(sm, kw, y_fn, valid, tag):
 
 def test_refusal_names_the_corner(sm):
     res = solver(sm).step(sm.matrix_nm @ perturbation(), [True, False, True, True])
-    assert "R04_SW0" in res.status and "allow_partial" in res.status
+    assert "R04" in res.status and "allow_partial" in res.status
     y = sm.matrix_nm @ perturbation()
     y[60] = np.nan  # corner 3 = R44_SW0
     res = solver(sm).step(y)
-    assert "R44_SW0" in res.status
+    assert "R44" in res.status
 
 
 def test_invalid_visit_leaves_state_alone(sm):

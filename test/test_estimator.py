@@ -206,3 +206,22 @@ def test_rejects_bad_parameters() -> None:
     with pytest.raises(ConfigError, match="band"):
         estimate_wavefront(intra, extra, field_intra_deg=(0, 0), field_extra_deg=(0, 0),
                            band="q")
+
+
+def test_caustic_flag_keeps_last_good_estimate() -> None:
+    """Z22 of a few hundred nm folds the 1-mm paraxial images (the intra rays cross)."""
+    from cwfs_ros.core import load_instrument
+    from cwfs_ros.sim.paraxial import render_paraxial_pair
+
+    inst = load_instrument("paraxial")
+    rng = np.random.default_rng(0)
+    calm = estimate_wavefront(*render_paraxial_pair(inst, {7: 300.0}, n_photons=2e6, rng=rng),
+                              field_intra_deg=(0, 0), field_extra_deg=(0, 0), instrument=inst)
+    assert not calm.caustic and abs(calm.zernikes_nm[3] - 300.0) < 15.0
+    folded = estimate_wavefront(*render_paraxial_pair(inst, {22: 400.0}, n_photons=1e6, rng=rng),
+                                field_intra_deg=(0, 0), field_extra_deg=(0, 0), instrument=inst)
+    assert folded.caustic
+    assert np.all(np.isfinite(folded.zernikes_nm)) and folded.iterations < 14
+    # The kept estimate is the last one computed before the fold, and points the right way.
+    np.testing.assert_allclose(folded.history_nm[-1][21], folded.zernikes_nm[-1])
+    assert folded.zernikes_nm[-1] > 100.0

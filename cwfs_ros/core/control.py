@@ -31,14 +31,30 @@ THE sign convention of this module
 
 ts_ofc stores the *negative* of this, in µm ("correction" convention); :class:`SensitivityMatrix`
 converts at load time (``A = -1000 * S_ts_ofc``), so nothing downstream sees the ts_ofc sign.
-``A`` equals batoid's finite-difference wavefront sensitivity (ratio 0.996-1.00 for the rigid
-body, 1.05-1.09 for bending modes 1-2, correlation > 0.9999; see ``test/test_control.py``)
-when a DoF vector is applied to ``batoid.Optic.fromYaml("LSST_r.yaml")`` as:
+
+DoF convention (which way is "+" for each DoF)
+----------------------------------------------
+The DoF of this module, of ``cwfs_msgs/DofCorrection`` and of the simulator
+(:func:`cwfs_ros.sim.perturbed_telescope`, default ``convention="batoid_rubin"``) follow
+batoid_rubin's ``LSSTBuilder``, i.e. the observatory coordinate system (OCS), which maps into
+batoid's global frame as x -> -x, y -> y, z -> -z (``dof_convention="batoid_rubin"``).
+
+ts_ofc's matrix, converted to wavefront sign, is instead the finite-difference sensitivity of
+a *plain* batoid frame (``dof_convention="ts_ofc"``; ratio 0.996-1.00 for the rigid body,
+1.05-1.09 for bending modes 1-2, correlation > 0.9999; see ``test/test_control.py``), where a
+DoF vector is applied to ``batoid.Optic.fromYaml("LSST_r.yaml")`` as:
 
 * M2 / camera ``(dz, dx, dy)``: ``withGloballyShiftedOptic(name, [dx, dy, dz] * 1e-6)``;
 * M2 / camera ``(rx, ry)``: ``withLocallyRotatedOptic(name, RotX(rad(rx)) @ RotY(rad(ry)))``;
 * bending: sag ``+sum_k dof_k * Z_k`` (batoid_rubin's legacy ``*_bend_zk`` tables) added to
   M1 and M3 (M1M3 modes) or M2 (M2 modes).
+
+The two conventions differ only in the sign of DoF :data:`TS_OFC_FLIPPED_DOF` = (0, 1, 3, 5,
+6, 8), i.e. dz, dx and rx of M2 and of the camera (the x -> -x, z -> -z frame flip; dy, ry and
+the bending modes are unchanged). :meth:`SensitivityMatrix.from_ts_ofc` therefore negates those
+six columns by default, so that ``A`` is in the batoid_rubin/OCS convention of
+``DofCorrection``; pass ``dof_convention="ts_ofc"`` to keep ts_ofc's own columns. The same
+conversion for DoF vectors and matrices is :func:`convert_dof_convention`.
 
 Controller
 ----------
@@ -79,13 +95,16 @@ from cwfs_ros.paths import config_dir
 __all__ = [
     "BANDS",
     "BUNDLED_MATRIX_FILENAME",
+    "CORNER_NAMES",
     "CORNER_SENSORS",
+    "DOF_CONVENTIONS",
     "N_CORNERS",
     "N_DOF",
     "N_MEAS",
     "N_ZK",
     "NOLL_MAX",
     "NOLL_MIN",
+    "TS_OFC_FLIPPED_DOF",
     "DofSpec",
     "Estimate",
     "OFCResult",
@@ -94,7 +113,9 @@ __all__ = [
     "OpticsConfig",
     "SensitivityMatrix",
     "band_wavelength_um",
+    "convert_dof_convention",
     "corner_field_points_deg",
+    "corner_mid_field_points_deg",
     "intrinsic_vector_nm",
     "intrinsic_zernikes_nm",
     "load_dof_spec",
@@ -111,8 +132,16 @@ N_CORNERS = 4
 N_MEAS = N_CORNERS * N_ZK  # 76
 N_DOF = 50
 CORNER_SENSORS: tuple[str, ...] = ("R00_SW0", "R04_SW0", "R40_SW0", "R44_SW0")
+CORNER_NAMES: tuple[str, ...] = ("R00", "R04", "R40", "R44")
 BANDS: tuple[str, ...] = ("u", "g", "r", "i", "z", "y", "ref")
-BUNDLED_MATRIX_FILENAME = "sensitivity_bundled_76x50_nm.npy"
+# The project's own matrix (tools/make_sensitivity.py): r band, rows at the corner mid-points.
+BUNDLED_MATRIX_FILENAME = "sensitivity_bundled_r.npy"
+# DoF conventions (see the module docstring): "batoid_rubin" = OCS = DofCorrection = simulator
+# default; "ts_ofc" = the plain batoid frame of ts_ofc's matrix. They differ in the sign of
+# M2/camera dz, dx, rx (same tuple as cwfs_ros.sim.TS_OFC_FLIPPED_DOF, kept here so that this
+# module needs no batoid).
+DOF_CONVENTIONS: tuple[str, ...] = ("batoid_rubin", "ts_ofc")
+TS_OFC_FLIPPED_DOF: tuple[int, ...] = (0, 1, 3, 5, 6, 8)
 
 _TS_OFC_MATRIX = "sensitivity_matrix/lsst_sensitivity_dz_31_29_50.yaml"
 _INTRINSIC_DIR = "intrinsic_zernikes/lsst"
@@ -214,6 +243,67 @@ def corner_field_points_deg(
         return np.array([[float(v) for v in pts[s]] for s in sensors], dtype=np.float64)
     except KeyError as exc:
         raise ConfigError(f"unknown sensor {exc} in lsst_points.yaml") from exc
+
+
+def corner_mid_field_points_deg(
+    corners: Sequence[str] = CORNER_NAMES, sensors_yaml: str | Path | None = None
+) -> np.ndarray:
+    """Mid-points (deg) of the SW0/SW1 half-chips of the corner rafts.
+
+    Read from ``config/sensors/lsst_corners.yaml`` (``mid_deg``, else the mean of the two
+    half-chip field points). This is where the wavefront estimator reports its Zernikes and
+    where the bundled sensitivity matrix is evaluated.
+
+    Returns
+    -------
+    (n, 2) array of ``(field_x, field_y)`` in degrees, in the order of ``corners``.
+    """
+    path = Path(sensors_yaml) if sensors_yaml is not None else (
+        config_dir() / "sensors" / "lsst_corners.yaml")
+    raw = _load_yaml(str(path))
+    out = []
+    try:
+        table = raw["corners"]
+        for c in corners:
+            entry = table[c]
+            if "mid_deg" in entry:
+                out.append([float(v) for v in entry["mid_deg"]])
+            else:
+                a = np.asarray(entry["intra"]["field_deg"], dtype=np.float64)
+                b = np.asarray(entry["extra"]["field_deg"], dtype=np.float64)
+                out.append(list(0.5 * (a + b)))
+    except (KeyError, TypeError) as exc:
+        raise ConfigError(f"{path}: no field points for corner {exc}") from exc
+    return _as_fields(np.array(out, dtype=np.float64))
+
+
+def convert_dof_convention(values: np.ndarray | Sequence[float], from_convention: str,
+                           to_convention: str, *, axis: int = -1) -> np.ndarray:
+    """Express a DoF vector, or the DoF axis of a matrix, in another DoF convention.
+
+    Parameters
+    ----------
+    values : (..., 50) DoF vector(s) or a (m, 50) sensitivity matrix (``axis=-1``).
+    from_convention, to_convention : ``"batoid_rubin"`` or ``"ts_ofc"`` (see the module
+        docstring). Between the two, entries :data:`TS_OFC_FLIPPED_DOF` change sign.
+    axis : the axis of length 50.
+
+    Returns
+    -------
+    A new float64 array (a copy even when the conventions are equal).
+    """
+    for c in (from_convention, to_convention):
+        if c not in DOF_CONVENTIONS:
+            raise ConfigError(f"unknown DoF convention {c!r}; expected one of {DOF_CONVENTIONS}")
+    out = np.array(values, dtype=np.float64, copy=True)
+    if out.shape[axis] != N_DOF:
+        raise ConfigError(f"the DoF axis must have {N_DOF} entries, got shape {out.shape}")
+    if from_convention != to_convention:
+        idx = [slice(None)] * out.ndim
+        idx[axis] = list(TS_OFC_FLIPPED_DOF)
+        out[tuple(idx)] *= -1.0
+        out += 0.0  # no -0.0
+    return out
 
 
 def load_normalization_weights(
@@ -399,6 +489,7 @@ class SensitivityMatrix:
         fields_deg: np.ndarray | Sequence[Sequence[float]] | None = None,
         cfg_dir: str | Path | None = None,
         matrix_path: str | Path | None = None,
+        dof_convention: str = "batoid_rubin",
     ) -> SensitivityMatrix:
         """Evaluate ts_ofc's double-Zernike sensitivity yaml at field points.
 
@@ -407,6 +498,10 @@ class SensitivityMatrix:
         fields_deg : (n, 2) field points in degrees; default the four SW0 corners.
         cfg_dir : OFC config directory (default ``config/ofc``).
         matrix_path : the (31 field x 29 pupil x 50 DoF) yaml, default ts_ofc's r-band one.
+        dof_convention : DoF convention of the result. ``"batoid_rubin"`` (default, the
+            convention of ``DofCorrection`` and of the simulator) negates the columns
+            :data:`TS_OFC_FLIPPED_DOF`; ``"ts_ofc"`` keeps ts_ofc's own columns (the plain
+            batoid frame). See the module docstring.
 
         The yaml is in µm per DoF unit in ts_ofc's correction convention; the result is
         converted to this module's wavefront convention in nm (``A = -1000 * S``). ts_ofc uses
@@ -422,6 +517,7 @@ class SensitivityMatrix:
         for d in range(N_DOF):
             out[:, :, d] = _eval_double_zernike(dz[:, :, d], fields, cfg)
         matrix = -_UM_TO_NM * out.reshape(-1, N_DOF)
+        matrix = convert_dof_convention(matrix, "ts_ofc", dof_convention)
         return cls(matrix, fields, "ts_ofc")
 
     @classmethod
@@ -433,6 +529,7 @@ class SensitivityMatrix:
         convention: str = "wavefront",
         fields_deg: np.ndarray | Sequence[Sequence[float]] | None = None,
         n_fields: int | None = None,
+        dof_convention: str = "batoid_rubin",
     ) -> SensitivityMatrix:
         """Load a ``(19 * n_fields, 50)`` matrix from an ``.npy`` file.
 
@@ -442,6 +539,8 @@ class SensitivityMatrix:
         convention : ``"wavefront"`` (this module's) or ``"ts_ofc"`` (negated, correction).
         fields_deg : optional field points to attach.
         n_fields : if given, the number of field points the file must hold.
+        dof_convention : DoF convention the *file* is in (``"batoid_rubin"`` or ``"ts_ofc"``);
+            the result is always converted to ``"batoid_rubin"``.
         """
         scale = {"nm": 1.0, "um": _UM_TO_NM}.get(units)
         sign = {"wavefront": 1.0, "ts_ofc": -1.0}.get(convention)
@@ -456,25 +555,33 @@ class SensitivityMatrix:
             raise ConfigError(f"{path}: expected shape ({N_ZK * n_fields}, {N_DOF}), "
                               f"got {m.shape}")
         fp = None if fields_deg is None else _as_fields(fields_deg)
+        if m.ndim != 2 or m.shape[1] != N_DOF:
+            raise ConfigError(f"{path}: expected shape (19 * n_fields, {N_DOF}), got {m.shape}")
+        m = convert_dof_convention(m, dof_convention, "batoid_rubin")
         return cls(sign * scale * np.asarray(m, dtype=np.float64), fp, f"npy:{path}")
 
     @classmethod
     def from_bundled(
         cls, path: str | Path | None = None, cfg_dir: str | Path | None = None
     ) -> SensitivityMatrix:
-        """Load the project's own matrix (``config/ofc/sensitivity_bundled_76x50_nm.npy``).
+        """Load the project's own matrix (``config/ofc/sensitivity_bundled_r.npy``).
 
         The file must be (76, 50), nm of wavefront per DoF unit in this module's wavefront
-        convention, rows for the four SW0 corners in :data:`CORNER_SENSORS` order.
+        sign and the batoid_rubin DoF convention, rows for the four corner mid-points
+        (:func:`corner_mid_field_points_deg`) in :data:`CORNER_NAMES` order. It is made by
+        ``tools/make_sensitivity.py`` from the simulator (see ``config/ofc/PROVENANCE.md``).
         """
         p = Path(path) if path is not None else _dir(cfg_dir) / BUNDLED_MATRIX_FILENAME
         sm = cls.from_npy(p, units="nm", convention="wavefront", n_fields=N_CORNERS,
-                          fields_deg=corner_field_points_deg(cfg_dir=cfg_dir))
+                          fields_deg=corner_mid_field_points_deg())
         return cls(sm.matrix_nm, sm.field_points_deg, "bundled")
 
     @classmethod
     def load(cls, source: str = "ts_ofc", **kwargs: object) -> SensitivityMatrix:
-        """``"ts_ofc"`` -> :meth:`from_ts_ofc`, ``"bundled"`` -> :meth:`from_bundled`."""
+        """``"ts_ofc"`` -> :meth:`from_ts_ofc`, ``"bundled"`` -> :meth:`from_bundled`.
+
+        Both come back in the batoid_rubin DoF convention and wavefront sign.
+        """
         if source == "ts_ofc":
             return cls.from_ts_ofc(**kwargs)  # type: ignore[arg-type]
         if source == "bundled":
@@ -809,7 +916,7 @@ class OFCSolver:
 
     def _corner_names(self) -> list[str]:
         if self.n_fields == N_CORNERS:
-            return list(CORNER_SENSORS)
+            return list(CORNER_NAMES)  # raft names: valid for SW0 and mid-point rows
         return [f"field{i}" for i in range(self.n_fields)]
 
     # ---------------------------------------------------------------- control step

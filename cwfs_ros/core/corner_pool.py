@@ -1,0 +1,364 @@
+"""Run the per-corner wavefront estimates in parallel worker processes (no ROS imports).
+
+The estimator is numpy code that holds the GIL most of the time, so the four corners of a
+visit run in separate *processes*. :class:`CornerPool` keeps ``n_workers`` single-process
+executors ("slots") and pins every corner to one slot (round robin), so that the geometry cache
+of :func:`cwfs_ros.core.estimator.pair_geometry` (~0.3-1 s to build per corner, ~25 ms per
+estimate once built) stays warm in the worker that serves the corner. :meth:`CornerPool.warm_up`
+builds those caches at start by estimating a synthetic donut pair per corner.
+
+Workers are started with the ``forkserver`` method (``spawn`` where it is unavailable): the
+parent may be a ROS process with middleware threads, which must not be ``fork()``-ed. The fork
+server pre-imports the estimator, so a worker is ready in well under a second.
+
+Everything that crosses the process boundary is a small picklable dataclass: a
+:class:`CornerJob` in, a :class:`CornerOutcome` out. A job never raises in the worker: bad
+images and configuration come back as an invalid outcome whose ``status`` names the problem.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import ConfigError, CwfsError
+from .images import Orientation, orient_image, pad_stamp
+
+__all__ = [
+    "CornerJob",
+    "CornerOutcome",
+    "CornerPool",
+    "EstimatorSettings",
+    "invalid_outcome",
+    "run_corner_job",
+    "synthetic_donut",
+    "validate_settings",
+    "warm_corner",
+]
+
+_NOLL = tuple(range(4, 23))
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """What the estimator needs besides the images (all picklable, hashable).
+
+    Attributes:
+        instrument: ``config/instruments`` name or path.
+        band: filter band (``u g r i z y``).
+        solver: TIE solver (``exp``, ``fft``, ``lsq``).
+        outer_iterations: outer-loop iterations; 0 means the ``config/algorithm.yaml`` value.
+        pad_px: pixels of background padding added around each stamp before estimation
+            (see :func:`cwfs_ros.core.images.pad_stamp`).
+    """
+
+    instrument: str = "lsst"
+    band: str = "r"
+    solver: str = "exp"
+    outer_iterations: int = 0
+    pad_px: int = 0
+
+    def estimator_kwargs(self) -> dict:
+        kw: dict = {"instrument": self.instrument, "band": self.band, "solver": self.solver}
+        if self.outer_iterations > 0:
+            kw["outer_iterations"] = int(self.outer_iterations)
+        return kw
+
+
+def validate_settings(settings: EstimatorSettings) -> None:
+    """Raise ConfigError naming the problem if the settings cannot work (cheap; no batoid)."""
+    from .estimator import load_algorithm
+    from .instrument import load_instrument
+
+    inst = load_instrument(settings.instrument)
+    if inst.mapping == "batoid" and settings.band not in inst.band_wavelength_nm:
+        raise ConfigError(f"unknown band {settings.band!r} for instrument {inst.name!r}; "
+                          f"known: {sorted(inst.band_wavelength_nm)}")
+    load_algorithm(settings.solver, **({"outer_iterations": settings.outer_iterations}
+                                       if settings.outer_iterations > 0 else {}))
+    if not 0 <= settings.pad_px <= 256:
+        raise ConfigError(f"pad_px must be in 0..256, got {settings.pad_px}")
+
+
+@dataclass(frozen=True)
+class CornerJob:
+    """One corner's pair for one visit, as decoded from the two image messages."""
+
+    corner: str
+    stamp_ns: int
+    intra: np.ndarray
+    extra: np.ndarray
+    field_intra_deg: tuple[float, float]
+    field_extra_deg: tuple[float, float]
+    settings: EstimatorSettings
+    orient_intra: Orientation = Orientation()
+    orient_extra: Orientation = Orientation()
+
+
+@dataclass(frozen=True)
+class CornerOutcome:
+    """Result of a :class:`CornerJob` (what a ``CornerWavefront`` carries).
+
+    Attributes:
+        zernikes_nm: (19,) Z4..Z22 in nm (NaN when not valid).
+        status: ``"ok"`` or ``"<tag>: <explanation>"``.
+        reason: the tag alone (``""`` when valid), for counting.
+        field_deg: field of the estimate (mid-point of the two half-chips), degrees.
+        compute_ms: wall time spent in the worker, ms.
+    """
+
+    corner: str
+    stamp_ns: int
+    valid: bool
+    status: str
+    reason: str
+    zernikes_nm: np.ndarray
+    field_deg: tuple[float, float]
+    caustic: bool = False
+    converged: bool = False
+    iterations: int = 0
+    compute_ms: float = 0.0
+    solver: str = ""
+    worker_pid: int = 0
+    noll: tuple[int, ...] = field(default=_NOLL)
+
+
+def _mid(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    return (0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1]))
+
+
+def invalid_outcome(corner: str, stamp_ns: int, reason: str, message: str,
+                    field_intra: tuple[float, float], field_extra: tuple[float, float],
+                    solver: str = "", compute_ms: float = 0.0) -> CornerOutcome:
+    """An invalid outcome whose status is ``"<reason>: <message>"``."""
+    status = message if message.startswith(reason + ":") else f"{reason}: {message}"
+    return CornerOutcome(corner, int(stamp_ns), False, status, reason,
+                         np.full(len(_NOLL), np.nan), _mid(field_intra, field_extra),
+                         solver=solver, compute_ms=compute_ms, worker_pid=os.getpid())
+
+
+def _shapes(job: CornerJob) -> str:
+    out = []
+    for side, a in (("intra", job.intra), ("extra", job.extra)):
+        shp = np.shape(a)
+        out.append(f"{side} {shp[1]}x{shp[0]}" if len(shp) == 2 else f"{side} {shp}")
+    return ", ".join(out)
+
+
+def run_corner_job(job: CornerJob) -> CornerOutcome:
+    """Estimate one corner (runs in a worker process; never raises)."""
+    from .estimator import estimate_wavefront
+
+    t0 = time.perf_counter()
+    s = job.settings
+
+    def fail(reason: str, message: str) -> CornerOutcome:
+        return invalid_outcome(job.corner, job.stamp_ns, reason, message, job.field_intra_deg,
+                               job.field_extra_deg, s.solver,
+                               (time.perf_counter() - t0) * 1e3)
+
+    try:
+        intra = pad_stamp(orient_image(np.asarray(job.intra, dtype=np.float64),
+                                       job.orient_intra), s.pad_px)
+        extra = pad_stamp(orient_image(np.asarray(job.extra, dtype=np.float64),
+                                       job.orient_extra), s.pad_px)
+        res = estimate_wavefront(intra, extra, field_intra_deg=job.field_intra_deg,
+                                 field_extra_deg=job.field_extra_deg,
+                                 **s.estimator_kwargs())
+    except CwfsError as exc:
+        reason = getattr(exc, "reason", None) or ("config" if isinstance(exc, ConfigError)
+                                                  else "bad_image")
+        msg = str(exc)
+        if s.pad_px > 0 and not isinstance(exc, ConfigError):
+            msg += (f" (received stamps {_shapes(job)} px, padded by {s.pad_px} px on each "
+                    "side)")
+        return fail(str(reason), msg)
+    except Exception as exc:  # noqa: BLE001 - a worker must report, not die
+        return fail("internal_error", f"{type(exc).__name__}: {exc}")
+    z = np.asarray(res.zernikes_nm, dtype=np.float64)
+    ms = (time.perf_counter() - t0) * 1e3
+    if res.iterations < 1:
+        return fail("caustic", "the compensation folded into caustic at the first outer "
+                    "iteration: no estimate (defocus too small for this wavefront?)")
+    if z.shape != (len(_NOLL),) or not np.all(np.isfinite(z)):
+        return fail("non_finite_estimate", "the estimator returned NaN/Inf Zernikes")
+    return CornerOutcome(job.corner, int(job.stamp_ns), True, "ok", "", z,
+                         tuple(float(v) for v in res.field_deg), bool(res.caustic),
+                         bool(res.converged), int(res.iterations), ms, res.solver,
+                         os.getpid())
+
+
+def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.ndarray:
+    """A flat annulus in a square stamp: enough to build and exercise the estimator caches."""
+    n = int(stamp_px)
+    yy, xx = np.mgrid[0:n, 0:n] - (n - 1) / 2.0
+    r = np.hypot(xx, yy)
+    img = ((r <= radius_px) & (r >= obscuration * radius_px)).astype(np.float64) * 100.0
+    return img + 1.0
+
+
+def warm_corner(corner: str, field_intra_deg: tuple[float, float],
+                field_extra_deg: tuple[float, float], settings: EstimatorSettings,
+                stamp_px: int = 0) -> dict:
+    """Build the estimator caches of one corner in this (worker) process.
+
+    Estimates a synthetic annulus pair once: that builds the pair geometry (the slow part) and
+    runs every code path of an estimate. The result of that estimate is irrelevant; errors are
+    reported, not raised.
+    """
+    from .estimator import estimate_wavefront, load_algorithm, pair_geometry
+    from .instrument import load_instrument
+
+    t0 = time.perf_counter()
+    try:
+        inst = load_instrument(settings.instrument)
+        n = int(stamp_px) if stamp_px else int(inst.stamp_size_px)
+        algo = load_algorithm(settings.solver, **({"outer_iterations": settings.outer_iterations}
+                                                   if settings.outer_iterations > 0 else {}))
+        geom = pair_geometry(inst, settings.band, inst.wavelength_nm(settings.band, None),
+                             tuple(field_intra_deg), tuple(field_extra_deg),
+                             inst.defocal_offset_mm, algo)
+        img = synthetic_donut(n + 2 * settings.pad_px, 0.92 * geom.outer_radius_px,
+                              inst.obscuration)
+        t1 = time.perf_counter()
+        try:
+            estimate_wavefront(img, img, field_intra_deg=field_intra_deg,
+                               field_extra_deg=field_extra_deg, **settings.estimator_kwargs())
+        except CwfsError:
+            pass  # the synthetic pair may be rejected; the caches are built regardless
+        return {"corner": corner, "ok": True, "pid": os.getpid(),
+                "geometry_s": t1 - t0, "total_s": time.perf_counter() - t0, "error": ""}
+    except Exception as exc:  # noqa: BLE001
+        return {"corner": corner, "ok": False, "pid": os.getpid(),
+                "geometry_s": 0.0, "total_s": time.perf_counter() - t0,
+                "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _worker_init() -> None:
+    """Worker start-up: one BLAS/OpenMP thread per worker (the pool is the parallelism; n
+    workers x n BLAS threads would oversubscribe the cores)."""
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except Exception:  # noqa: BLE001, S110 - optional optimisation
+        pass
+
+
+def _mp_context(method: str | None) -> mp.context.BaseContext:
+    methods = mp.get_all_start_methods()
+    name = method or ("forkserver" if "forkserver" in methods else "spawn")
+    if name not in methods:
+        raise ConfigError(f"start method {name!r} not available here ({methods})")
+    ctx = mp.get_context(name)
+    if name == "forkserver":
+        # Only effective before the fork server starts (once per process); harmless after.
+        ctx.set_forkserver_preload(["numpy", "scipy.ndimage", "cwfs_ros.core.estimator",
+                                    "cwfs_ros.core.corner_pool", "batoid"])
+    return ctx
+
+
+class CornerPool:
+    """Per-corner-affine process pool.
+
+    Args:
+        corners: the corners this pool serves; corner ``corners[i]`` runs in slot
+            ``i % n_workers``.
+        n_workers: worker processes (``0`` = ``min(len(corners), os.cpu_count())``).
+        start_method: multiprocessing start method (default ``forkserver``, else ``spawn``).
+    """
+
+    def __init__(self, corners: Sequence[str], n_workers: int = 0,
+                 start_method: str | None = None) -> None:
+        if not corners:
+            raise ConfigError("CornerPool needs at least one corner")
+        self.corners = tuple(corners)
+        n = int(n_workers) or min(len(self.corners), os.cpu_count() or 1)
+        self.n_workers = max(1, min(n, len(self.corners)))
+        self._ctx = _mp_context(start_method)
+        self._lock = threading.Lock()
+        self._slots: list[ProcessPoolExecutor | None] = [None] * self.n_workers
+        self.affinity = {c: i % self.n_workers for i, c in enumerate(self.corners)}
+        self.restarts = 0
+        self._closed = False
+
+    def _slot(self, i: int) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("CornerPool is shut down")
+            ex = self._slots[i]
+            if ex is None:
+                ex = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx,
+                                         initializer=_worker_init)
+                self._slots[i] = ex
+            return ex
+
+    def _restart(self, i: int, broken: ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._slots[i] is broken:
+                self._slots[i] = None
+                self.restarts += 1
+        broken.shutdown(wait=False, cancel_futures=True)
+
+    def _submit(self, corner: str, fn: Callable, *args) -> Future:
+        i = self.affinity[corner]
+        ex = self._slot(i)
+        try:
+            return ex.submit(fn, *args)
+        except BrokenProcessPool:
+            self._restart(i, ex)
+            return self._slot(i).submit(fn, *args)
+
+    def submit(self, job: CornerJob) -> Future:
+        """Queue a job on its corner's worker. The future's result is a CornerOutcome.
+
+        If the worker process dies, the future resolves to an invalid outcome
+        (``worker_crashed``) and the slot is restarted for the next job.
+        """
+        if job.corner not in self.affinity:
+            raise ConfigError(f"corner {job.corner!r} is not served by this pool")
+        out: Future = Future()
+        inner = self._submit(job.corner, run_corner_job, job)
+        i = self.affinity[job.corner]
+
+        def done(f: Future) -> None:
+            try:
+                out.set_result(f.result())
+            except BaseException as exc:  # noqa: BLE001
+                if isinstance(exc, BrokenProcessPool):
+                    ex = self._slots[i]
+                    if ex is not None:
+                        self._restart(i, ex)
+                out.set_result(invalid_outcome(
+                    job.corner, job.stamp_ns, "worker_crashed",
+                    f"the worker process failed ({type(exc).__name__}: {exc})",
+                    job.field_intra_deg, job.field_extra_deg, job.settings.solver))
+
+        inner.add_done_callback(done)
+        return out
+
+    def warm_up(self, fields: dict[str, tuple[tuple[float, float], tuple[float, float]]],
+                settings: EstimatorSettings, stamp_px: int = 0) -> list[Future]:
+        """Start building each corner's caches in its worker; futures of :func:`warm_corner`.
+
+        ``fields`` maps corner -> (field_intra_deg, field_extra_deg).
+        """
+        return [self._submit(c, warm_corner, c, fi, fe, settings, stamp_px)
+                for c, (fi, fe) in fields.items() if c in self.affinity]
+
+    def shutdown(self, wait: bool = False) -> None:
+        """Stop the workers (queued jobs are cancelled)."""
+        with self._lock:
+            self._closed = True
+            slots, self._slots = self._slots, [None] * self.n_workers
+        for ex in slots:
+            if ex is not None:
+                ex.shutdown(wait=wait, cancel_futures=True)

@@ -1,0 +1,430 @@
+"""Visit bookkeeping for the wavefront node: image pairing and 76-vector assembly (no ROS).
+
+Two small state machines, driven by the node with explicit ``now`` times (monotonic seconds)
+so that they can be tested without a clock or a middleware:
+
+* :class:`PairingBuffer` pairs the intra- and extra-focal images of each corner by their
+  exposure stamp (integer nanoseconds, equal within a tolerance). It reports duplicate, late
+  and (after a timeout) unpaired images as :class:`Rejection` records.
+* :class:`VisitAssembler` collects the per-corner results of a visit (from this process or
+  from ``CornerWavefront`` messages of other processes) into the fixed 76-entry layout of
+  ``cwfs_msgs/WavefrontVector``: 4 corners (R00, R04, R40, R44) x Noll Z4..Z22. A visit is
+  emitted when all four corners are in, or when the timeout expires, with the missing corners
+  marked invalid.
+
+Visit identity: a visit is a stamp. A later record whose stamp is within ``tolerance_ns`` of a
+pending or recently closed visit's stamp belongs to that visit.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "CORNERS",
+    "N_ZK",
+    "NOLL",
+    "SIDES",
+    "CornerEntry",
+    "ImageRecord",
+    "PairReady",
+    "PairingBuffer",
+    "Rejection",
+    "VisitAssembler",
+    "VisitVector",
+    "format_stamp",
+    "load_corner_fields",
+    "zernikes_by_noll",
+]
+
+CORNERS: tuple[str, ...] = ("R00", "R04", "R40", "R44")
+SIDES: tuple[str, ...] = ("intra", "extra")
+NOLL: tuple[int, ...] = tuple(range(4, 23))
+N_ZK = len(NOLL)  # 19
+
+
+def format_stamp(stamp_ns: int) -> str:
+    """``sec.nanosec`` text of a stamp, for messages."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return f"{sec}.{nsec:09d}"
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Something the node did not use, and why.
+
+    Attributes:
+        reason: short tag for counting (``duplicate``, ``late``, ``unpaired``,
+            ``unknown_corner``, ``unknown_side``, ``bad_corner_wavefront``, or a decoding /
+            estimator tag such as ``unsupported_encoding``).
+        message: one human-readable sentence.
+    """
+
+    reason: str
+    message: str
+    corner: str = ""
+    side: str = ""
+    stamp_ns: int = 0
+
+
+@dataclass
+class ImageRecord:
+    """One received image, decoded or not.
+
+    Attributes:
+        image: the decoded stamp (``None`` when decoding failed).
+        error: ``None``, or the ``"<tag>: <explanation>"`` of a decoding failure; the pair is
+            still formed so that the corner's result can say what was wrong.
+        received: monotonic receive time in seconds.
+    """
+
+    corner: str
+    side: str
+    stamp_ns: int
+    image: np.ndarray | None = None
+    error: str | None = None
+    frame_id: str = ""
+    received: float = 0.0
+
+
+@dataclass(frozen=True)
+class PairReady:
+    """An intra/extra pair of one corner and one visit, ready for estimation.
+
+    ``stamp_ns`` is the intra image's stamp (the visit's stamp; the extra's is within the
+    tolerance). ``error`` is set when either image failed to decode.
+    """
+
+    corner: str
+    stamp_ns: int
+    intra: ImageRecord
+    extra: ImageRecord
+
+    @property
+    def error(self) -> str | None:
+        errs = [f"{r.side} image {r.error}" for r in (self.intra, self.extra) if r.error]
+        return "; ".join(errs) if errs else None
+
+
+class _Closed:
+    """Bounded memory of closed visit stamps and why they were closed."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = max(1, int(capacity))
+        self._items: OrderedDict[int, str] = OrderedDict()
+
+    def add(self, stamp_ns: int, how: str) -> None:
+        self._items[int(stamp_ns)] = how
+        self._items.move_to_end(int(stamp_ns))
+        while len(self._items) > self.capacity:
+            self._items.popitem(last=False)
+
+    def find(self, stamp_ns: int, tol: int) -> str | None:
+        how = self._items.get(int(stamp_ns))
+        if how is not None or tol <= 0:
+            return how
+        for s, h in self._items.items():
+            if abs(s - stamp_ns) <= tol:
+                return h
+        return None
+
+    def oldest(self) -> int | None:
+        """The oldest stamp still remembered, once the memory is full (else None)."""
+        if len(self._items) < self.capacity:
+            return None
+        return min(self._items)
+
+
+class PairingBuffer:
+    """Pairs intra and extra images per corner by stamp.
+
+    Args:
+        corners: corners served (others are rejected as ``unknown_corner``).
+        tolerance_ns: two stamps within this many ns belong to the same visit.
+        timeout_s: an image waits at most this long (receive time) for its partner; then it is
+            dropped and reported ``unpaired`` by :meth:`expire`.
+        history: closed visits remembered per corner (for duplicate / late detection).
+    """
+
+    def __init__(self, corners: Sequence[str] = CORNERS, *, tolerance_ns: int = 1_000_000,
+                 timeout_s: float = 2.0, history: int = 256) -> None:
+        self.corners = tuple(corners)
+        self.tolerance_ns = int(tolerance_ns)
+        self.timeout_s = float(timeout_s)
+        self._pending: dict[str, dict[str, list[ImageRecord]]] = {
+            c: {s: [] for s in SIDES} for c in self.corners}
+        self._closed = {c: _Closed(history) for c in self.corners}
+
+    def pending_count(self) -> int:
+        return sum(len(v) for sides in self._pending.values() for v in sides.values())
+
+    def add(self, rec: ImageRecord) -> tuple[PairReady | None, Rejection | None]:
+        """Add one image; return the completed pair, or why the image was not kept."""
+        c, side, t = rec.corner, rec.side, int(rec.stamp_ns)
+        where = f"{side} image of {c} at stamp {format_stamp(t)}"
+        if c not in self._pending:
+            return None, Rejection("unknown_corner", f"{where}: corner not served here "
+                                   f"(serving {', '.join(self.corners)})", c, side, t)
+        if side not in SIDES:
+            return None, Rejection("unknown_side", f"{where}: side must be intra or extra",
+                                   c, side, t)
+        tol = self.tolerance_ns
+        closed = self._closed[c].find(t, tol)
+        if closed == "paired":
+            return None, Rejection("duplicate", f"{where}: that visit was already paired",
+                                   c, side, t)
+        if closed is not None:
+            return None, Rejection("late", f"{where}: arrived after that visit was closed "
+                                   f"({closed})", c, side, t)
+        oldest = self._closed[c].oldest()
+        if oldest is not None and t < oldest - tol:
+            return None, Rejection("late", f"{where}: older than every visit still tracked",
+                                   c, side, t)
+        same = self._pending[c][side]
+        if any(abs(r.stamp_ns - t) <= tol for r in same):
+            return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
+                                   "already waiting for its partner", c, side, t)
+        other_side = "extra" if side == "intra" else "intra"
+        others = self._pending[c][other_side]
+        match = None
+        for r in others:
+            if abs(r.stamp_ns - t) <= tol and (match is None or
+                                               abs(r.stamp_ns - t) < abs(match.stamp_ns - t)):
+                match = r
+        if match is None:
+            same.append(rec)
+            return None, None
+        others.remove(match)
+        intra, extra = (rec, match) if side == "intra" else (match, rec)
+        self._closed[c].add(intra.stamp_ns, "paired")
+        return PairReady(c, intra.stamp_ns, intra, extra), None
+
+    def close(self, corner: str, stamp_ns: int, how: str) -> list[Rejection]:
+        """Close a visit of a corner from outside (e.g. the assembler timed it out).
+
+        Images of that visit still waiting are dropped (reported ``unpaired``) and later ones
+        are rejected as ``late``.
+        """
+        if corner not in self._pending:
+            return []
+        out = []
+        for side in SIDES:
+            keep = []
+            for r in self._pending[corner][side]:
+                if abs(r.stamp_ns - stamp_ns) <= self.tolerance_ns:
+                    out.append(self._unpaired(r, how))
+                else:
+                    keep.append(r)
+            self._pending[corner][side] = keep
+        if self._closed[corner].find(stamp_ns, self.tolerance_ns) is None:
+            self._closed[corner].add(stamp_ns, how)
+        return out
+
+    def _unpaired(self, r: ImageRecord, how: str) -> Rejection:
+        other = "extra" if r.side == "intra" else "intra"
+        return Rejection("unpaired", f"{r.side} image of {r.corner} at stamp "
+                         f"{format_stamp(r.stamp_ns)} got no {other} image ({how})",
+                         r.corner, r.side, r.stamp_ns)
+
+    def expire(self, now: float) -> list[Rejection]:
+        """Drop images that waited longer than the timeout; their visits become closed."""
+        out = []
+        for c, sides in self._pending.items():
+            for side in SIDES:
+                keep = []
+                for r in sides[side]:
+                    if now - r.received > self.timeout_s:
+                        how = f"timeout {self.timeout_s:g} s"
+                        out.append(self._unpaired(r, how))
+                        self._closed[c].add(r.stamp_ns, f"unpaired after {how}")
+                    else:
+                        keep.append(r)
+                sides[side] = keep
+        return out
+
+
+@dataclass(frozen=True)
+class CornerEntry:
+    """One corner's result for one visit, as the assembler consumes it.
+
+    Attributes:
+        zernikes_nm: Z4..Z22 (19 values, nm) when ``valid``; ignored otherwise.
+    """
+
+    corner: str
+    stamp_ns: int
+    zernikes_nm: np.ndarray | None
+    valid: bool
+    status: str
+
+
+@dataclass(frozen=True)
+class VisitVector:
+    """The assembled visit (the content of a ``WavefrontVector``).
+
+    Attributes:
+        zernikes_nm: (76,) corner-major Z4..Z22; NaN for invalid or missing corners.
+        corner_valid: (4,) validity in :data:`CORNERS` order.
+        statuses: per-corner status text (``"ok"``, the corner's reason, or ``"missing"``).
+        status: ``"ok"`` when every corner is valid, else a summary naming the bad corners.
+        complete: all four corners reported before the timeout.
+    """
+
+    stamp_ns: int
+    zernikes_nm: np.ndarray
+    corner_valid: tuple[bool, ...]
+    statuses: tuple[str, ...]
+    status: str
+    complete: bool
+    corners: tuple[str, ...] = CORNERS
+
+
+@dataclass
+class _Visit:
+    stamp_ns: int
+    started: float
+    entries: dict[str, CornerEntry] = field(default_factory=dict)
+
+
+class VisitAssembler:
+    """Collects per-corner results into the 76-vector of a visit.
+
+    Args:
+        tolerance_ns: corner stamps within this many ns belong to the same visit.
+        timeout_s: a visit is emitted this long after its first corner arrived, with the
+            corners still missing marked invalid.
+        history: emitted visits remembered (for duplicate / late detection).
+    """
+
+    def __init__(self, *, tolerance_ns: int = 1_000_000, timeout_s: float = 2.0,
+                 history: int = 256) -> None:
+        self.tolerance_ns = int(tolerance_ns)
+        self.timeout_s = float(timeout_s)
+        self._visits: list[_Visit] = []
+        self._closed = _Closed(history)
+
+    def pending_count(self) -> int:
+        return len(self._visits)
+
+    def _find(self, stamp_ns: int) -> _Visit | None:
+        best = None
+        for v in self._visits:
+            d = abs(v.stamp_ns - stamp_ns)
+            if d <= self.tolerance_ns and (best is None or d < abs(best.stamp_ns - stamp_ns)):
+                best = v
+        return best
+
+    def add(self, entry: CornerEntry, now: float) -> tuple[VisitVector | None,
+                                                            Rejection | None]:
+        """Add a corner result; return the visit if it is now complete."""
+        c, t = entry.corner, int(entry.stamp_ns)
+        where = f"wavefront of {c} at stamp {format_stamp(t)}"
+        if c not in CORNERS:
+            return None, Rejection("unknown_corner", f"{where}: corner must be one of "
+                                   f"{', '.join(CORNERS)}", c, "", t)
+        entry = _checked(entry)
+        closed = self._closed.find(t, self.tolerance_ns)
+        if closed is not None:
+            return None, Rejection("late", f"{where}: arrived after the visit was published "
+                                   f"({closed})", c, "", t)
+        oldest = self._closed.oldest()
+        if oldest is not None and t < oldest - self.tolerance_ns:
+            return None, Rejection("late", f"{where}: older than every visit still tracked",
+                                   c, "", t)
+        visit = self._find(t)
+        if visit is None:
+            visit = _Visit(t, now)
+            self._visits.append(visit)
+        elif c in visit.entries:
+            return None, Rejection("duplicate", f"{where}: this corner already reported for "
+                                   "the visit", c, "", t)
+        visit.entries[c] = entry
+        if len(visit.entries) == len(CORNERS):
+            return self._emit(visit, complete=True), None
+        return None, None
+
+    def expire(self, now: float) -> list[VisitVector]:
+        """Emit every visit older than the timeout, missing corners marked invalid."""
+        due = [v for v in self._visits if now - v.started > self.timeout_s]
+        return [self._emit(v, complete=False) for v in sorted(due, key=lambda v: v.stamp_ns)]
+
+    def _emit(self, visit: _Visit, *, complete: bool) -> VisitVector:
+        self._visits.remove(visit)
+        z = np.full(len(CORNERS) * N_ZK, np.nan)
+        valid, statuses, bad = [], [], []
+        for i, c in enumerate(CORNERS):
+            e = visit.entries.get(c)
+            if e is None:
+                st = f"missing: no wavefront within the {self.timeout_s:g} s visit timeout"
+                ok = False
+            else:
+                ok, st = e.valid, e.status if not e.valid else "ok"
+                if ok:
+                    z[i * N_ZK:(i + 1) * N_ZK] = e.zernikes_nm
+            valid.append(ok)
+            statuses.append(st)
+            if not ok:
+                bad.append(f"{c} {st}")
+        how = "complete" if complete else f"timeout {self.timeout_s:g} s"
+        self._closed.add(visit.stamp_ns, f"published, {how}")
+        status = "ok" if not bad else "invalid corners: " + "; ".join(bad)
+        return VisitVector(visit.stamp_ns, z, tuple(valid), tuple(statuses), status, complete)
+
+
+def _checked(e: CornerEntry) -> CornerEntry:
+    """A valid entry must carry 19 finite Zernikes; otherwise it is treated as invalid."""
+    if not e.valid:
+        return e
+    z = None if e.zernikes_nm is None else np.asarray(e.zernikes_nm, dtype=np.float64)
+    if z is None or z.shape != (N_ZK,):
+        shape = None if z is None else z.shape
+        return CornerEntry(e.corner, e.stamp_ns, None, False,
+                           f"bad_corner_wavefront: flagged valid but holds {shape} Zernikes "
+                           f"instead of Z4..Z22 ({N_ZK})")
+    if not np.all(np.isfinite(z)):
+        return CornerEntry(e.corner, e.stamp_ns, None, False,
+                           "bad_corner_wavefront: flagged valid but holds NaN/Inf Zernikes")
+    return CornerEntry(e.corner, e.stamp_ns, z, True, e.status)
+
+
+def zernikes_by_noll(noll: Iterable[int], values: Iterable[float]) -> np.ndarray | None:
+    """Z4..Z22 (19 values) from parallel ``noll`` / ``values`` lists, or None if incomplete."""
+    noll, values = list(noll), list(values)
+    if len(noll) != len(values):
+        return None
+    table = {int(j): float(v) for j, v in zip(noll, values, strict=True)}
+    if any(j not in table for j in NOLL):
+        return None
+    return np.array([table[j] for j in NOLL])
+
+
+def load_corner_fields(path: str | None = None) -> dict[str, dict[str, tuple[float, float]]]:
+    """Field points of each corner's half-chips: ``{corner: {"intra": (x, y), "extra": ...}}``.
+
+    Read from ``config/sensors/lsst_corners.yaml`` (or ``path``); degrees, batoid field frame.
+    The image centre of each half-sensor stamp is taken to be at that field point.
+    """
+    from pathlib import Path
+
+    import yaml
+
+    from ..paths import config_dir
+    from .errors import ConfigError
+
+    p = Path(path) if path else config_dir() / "sensors" / "lsst_corners.yaml"
+    try:
+        with open(p, encoding="utf-8") as f:
+            raw = yaml.safe_load(f)
+        out = {}
+        for name, c in raw["corners"].items():
+            out[str(name)] = {}
+            for side in SIDES:
+                x, y = (float(v) for v in c[side]["field_deg"])
+                out[str(name)][side] = (x, y)
+        return out
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"cannot read the corner field points from {p}: {exc}") from exc

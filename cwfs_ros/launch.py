@@ -1,0 +1,268 @@
+"""Entry points that start the nodes, as ``ros2 launch`` / ``ros2 run`` would.
+
+The PyPI ROS 2 wheels have no ``ros2`` command and no ``launch`` package, so this module is the
+project's launcher:
+
+* ``cwfs-ros bringup [--sim] [--params FILE] [--ros-args ...]`` runs wavefront_node and
+  ofc_node (plus camera_sim_node with ``--sim``) composed in one process on a
+  MultiThreadedExecutor, like a launch file with a component container would;
+* ``cwfs-ros node NAME [--params FILE] [--ros-args ...]`` runs one node;
+* the executables ``wavefront_node`` / ``ofc_node`` (``ros2 run``-style) call
+  :func:`run_node_main`.
+
+Parameters come from ``config/params.yaml`` (``ros__parameters`` keyed by node name), then
+from each ``--params FILE`` in order (later files win), then from ``--ros-args`` (``-p``,
+``--params-file``, remappings, ``--log-level`` ...), exactly as rcl orders them. Before ROS
+starts, ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set to ``config/fastdds_profile.xml`` unless the
+environment already sets it (the large-image shared-memory settings).
+
+Usable without the project CLI as ``python -m cwfs_ros.launch bringup|node ...``. To register
+the subcommands in another argparse CLI::
+
+    from cwfs_ros.launch import add_bringup_parser, add_node_parser
+    add_bringup_parser(subparsers); add_node_parser(subparsers)
+    args = parser.parse_args(); sys.exit(args.func(args))
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from cwfs_ros.paths import config_dir
+
+__all__ = [
+    "BRINGUP_NODES",
+    "LaunchError",
+    "NODES",
+    "add_bringup_parser",
+    "add_node_parser",
+    "default_params_file",
+    "ensure_fastdds_profile",
+    "load_node_class",
+    "main",
+    "ros_arguments",
+    "run_node_main",
+    "run_nodes",
+]
+
+PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
+# node name -> (module, class). camera_sim_node is written separately and imported lazily.
+NODES: dict[str, tuple[str, str]] = {
+    "wavefront_node": ("cwfs_ros.nodes.wavefront_node", "WavefrontNode"),
+    "ofc_node": ("cwfs_ros.nodes.ofc_node", "OfcNode"),
+    "camera_sim_node": ("cwfs_ros.nodes.camera_sim_node", "CameraSimNode"),
+}
+BRINGUP_NODES: tuple[str, ...] = ("wavefront_node", "ofc_node")
+SIM_NODE = "camera_sim_node"
+
+
+class LaunchError(RuntimeError):
+    """A node cannot be started; the message says why and what to do."""
+
+
+def default_params_file() -> Path:
+    return config_dir() / "params.yaml"
+
+
+def ensure_fastdds_profile() -> str | None:
+    """Point FastDDS at config/fastdds_profile.xml unless the environment chose a profile."""
+    if not os.environ.get(PROFILE_ENV):
+        prof = config_dir() / "fastdds_profile.xml"
+        if prof.is_file():
+            os.environ[PROFILE_ENV] = str(prof)
+    return os.environ.get(PROFILE_ENV)
+
+
+def ros_arguments(params_files: Sequence[str | Path] = (),
+                  ros_args: Sequence[str] = (), *, defaults: bool = True) -> list[str]:
+    """The rcl command line: default params, ``--params`` files, then the user's ROS args."""
+    files = ([default_params_file()] if defaults and default_params_file().is_file() else [])
+    for f in params_files:
+        p = Path(f)
+        if not p.is_file():
+            raise LaunchError(f"parameter file not found: {f}")
+        files.append(p)
+    out: list[str] = []
+    if files:
+        out.append("--ros-args")
+        for f in files:
+            out += ["--params-file", str(f)]
+    rest = list(ros_args)
+    if rest:
+        if rest[0] != "--ros-args":
+            rest.insert(0, "--ros-args")
+        out += rest
+    return out
+
+
+def load_node_class(name: str) -> type:
+    """The node class of ``name`` (imported lazily; camera_sim_node may not exist yet)."""
+    if name not in NODES:
+        raise LaunchError(f"unknown node {name!r}; known: {', '.join(sorted(NODES))}")
+    module, cls = NODES[name]
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name == module:
+            raise LaunchError(
+                f"{name} is not available: module {module} (class {cls}) is not installed in "
+                "this checkout yet" + (" (bringup --sim needs it; run bringup without --sim, "
+                                       "or add the camera simulator)" if name == SIM_NODE
+                                       else "")) from None
+        raise
+    try:
+        return getattr(mod, cls)
+    except AttributeError:
+        raise LaunchError(f"{module} does not define {cls}, the class of {name}") from None
+
+
+def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
+              ros_args: Sequence[str] = (), context=None, domain_id: int | None = None,
+              threads: int = 0, on_ready=None) -> int:
+    """Start the named nodes in this process on one MultiThreadedExecutor; spin until shutdown.
+
+    Args:
+        names: node names (keys of :data:`NODES`); each node is created with its default name
+            (remappable with ``--ros-args -r __node:=...`` for a single node).
+        params_files, ros_args: see :func:`ros_arguments`.
+        context: an rclpy Context to use (default: the global one, with SIGINT/SIGTERM
+            handlers); it is initialised here, on ``domain_id`` if given (else
+            ``ROS_DOMAIN_ID``).
+        threads: executor threads (0 = max(4, CPUs)).
+        on_ready: optional callable(nodes, executor) called once the nodes exist.
+
+    Returns:
+        Process exit code (0 after a clean shutdown, 2 when a node could not start).
+    """
+    ensure_fastdds_profile()
+    try:
+        classes = [load_node_class(n) for n in names]
+        argv = ["cwfs-ros", *ros_arguments(params_files, ros_args)]
+    except LaunchError as exc:
+        print(f"cwfs-ros: error: {exc}", file=sys.stderr)
+        return 2
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
+    ctx = context
+    if ctx is None:
+        rclpy.init(args=argv, domain_id=domain_id)
+        ctx = rclpy.get_default_context()
+    else:
+        rclpy.init(args=argv, context=ctx, domain_id=domain_id)
+    nodes = []
+    executor = None
+    code = 0
+    try:
+        for name, cls in zip(names, classes, strict=True):
+            try:
+                nodes.append(cls(context=ctx))
+            except Exception as exc:  # noqa: BLE001 - report any start-up failure clearly
+                print(f"cwfs-ros: error: {name} could not start: {type(exc).__name__}: {exc}",
+                      file=sys.stderr)
+                return 2
+        executor = MultiThreadedExecutor(num_threads=threads or max(4, os.cpu_count() or 1),
+                                         context=ctx)
+        for n in nodes:
+            executor.add_node(n)
+        if on_ready is not None:
+            on_ready(nodes, executor)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
+        for n in nodes:
+            try:
+                n.destroy_node()
+            except Exception:  # noqa: BLE001, S110 - best effort at shutdown
+                pass
+        ctx.try_shutdown()
+    return code
+
+
+def _split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    argv = list(argv)
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        return argv[:i], argv[i:]
+    return argv, []
+
+
+def run_node_main(name: str, argv: Sequence[str] | None = None) -> int:
+    """``ros2 run``-style main of one node: ``NAME [--params FILE] [--ros-args ...]``."""
+    own, ros = _split_ros_args(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog=name, description=f"Run {name} (cwfs_ros).")
+    ap.add_argument("--params", action="append", default=[], metavar="FILE",
+                    help="extra ROS parameter YAML over config/params.yaml (repeatable)")
+    args = ap.parse_args(own)
+    return run_nodes([name], params_files=args.params, ros_args=ros)
+
+
+# -------------------------------------------------------------------- argparse subcommands
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--params", action="append", default=[], metavar="FILE",
+                   help="ROS parameter YAML overlaid on config/params.yaml (repeatable; "
+                        "ros__parameters keyed by node name)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="executor threads (default max(4, CPUs))")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                   help="everything after this goes to ROS (-p name:=value, -r, "
+                        "--params-file, --log-level ...)")
+
+
+def cmd_bringup(args: argparse.Namespace) -> int:
+    names = list(BRINGUP_NODES) + ([SIM_NODE] if args.sim else [])
+    return run_nodes(names, params_files=args.params, ros_args=args.ros_args or [],
+                     threads=args.threads)
+
+
+def cmd_node(args: argparse.Namespace) -> int:
+    return run_nodes([args.name], params_files=args.params, ros_args=args.ros_args or [],
+                     threads=args.threads)
+
+
+def add_bringup_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``bringup`` on an argparse subparsers object (sets ``func``)."""
+    p = subparsers.add_parser(
+        "bringup", help="run wavefront_node + ofc_node (+ camera_sim_node) in one process",
+        description="Run the cwfs_ros nodes composed in one process on a MultiThreadedExecutor "
+                    "(like a launch file). Parameters: config/params.yaml, then --params "
+                    "files, then --ros-args.")
+    p.add_argument("--sim", action="store_true",
+                   help="also run camera_sim_node (cwfs_ros.nodes.camera_sim_node)")
+    _add_common(p)
+    p.set_defaults(func=cmd_bringup)
+    return p
+
+
+def add_node_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``node NAME`` on an argparse subparsers object (sets ``func``)."""
+    p = subparsers.add_parser("node", help="run one cwfs_ros node",
+                              description="Run one node (like `ros2 run cwfs_ros NAME`).")
+    p.add_argument("name", choices=sorted(NODES), help="node to run")
+    _add_common(p)
+    p.set_defaults(func=cmd_node)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cwfs_ros.launch bringup|node ...`` (the same subcommands as cwfs-ros)."""
+    ap = argparse.ArgumentParser(prog="python -m cwfs_ros.launch",
+                                 description="Start cwfs_ros nodes.")
+    sub = ap.add_subparsers(dest="command", required=True)
+    add_bringup_parser(sub)
+    add_node_parser(sub)
+    args = ap.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

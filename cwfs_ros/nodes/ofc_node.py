@@ -1,0 +1,284 @@
+"""ofc_node: the visit's 76-vector in, the 50-DoF active-optics correction out.
+
+Topics and services (relative names; in the root namespace they are the ones below)
+----------------------------------------------------------------------------------
+in   ``/aos/wfs/wavefront``     cwfs_msgs/WavefrontVector (total wavefront, intrinsic included)
+out  ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection, one per vector, same header.stamp
+out  ``/diagnostics``           state, refusal counts and the last reason
+srv  ``~/reset``                std_srvs/Trigger: forget the accumulated DoF state and integral
+
+Per visit (all in :class:`cwfs_ros.core.control.OFCSolver`): subtract the band's intrinsic
+design wavefront at the corner fields, estimate the DoF error with a truncated-SVD or Tikhonov
+pseudo-inverse in normalised DoF units, apply the P/PI law, limit the step per visit and clip
+the accumulated state to the DoF ranges. The DoF convention is batoid_rubin's (OCS), the one of
+``DofCorrection``; both matrix sources are converted to it. A vector with an invalid corner is
+refused (valid=false + status) unless ``allow_partial``. With ``dry_run`` the correction is
+computed and published (``dry_run=true``) but the controller state does not advance, since
+the correction is not applied.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from functools import lru_cache
+
+import numpy as np
+from cwfs_msgs.msg import DofCorrection, WavefrontVector
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
+
+from cwfs_ros.core import control as C
+from cwfs_ros.core.errors import ConfigError
+
+from .common import (
+    DIAGNOSTICS_QOS,
+    OK,
+    OUTPUT_QOS,
+    WARN,
+    RejectionCounter,
+    describe,
+    diagnostic_status,
+    diagnostics_array,
+    result,
+    stamp_to_ns,
+)
+from .convert import dof_correction_msg, vector_from_msg
+
+__all__ = ["OfcNode", "build_solver", "main"]
+
+NODE_NAME = "ofc_node"
+VECTOR_TOPIC = "aos/wfs/wavefront"
+CORRECTION_TOPIC = "aos/ofc/dof_correction"
+MATRIX_SOURCES = ("bundled", "ts_ofc")
+_SOLVER_PARAMS = ("band", "matrix_source", "method", "n_modes", "alpha", "weights", "kp", "ki",
+                  "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
+                  "max_condition")
+
+
+@lru_cache(maxsize=4)
+def sensitivity(source: str) -> C.SensitivityMatrix:
+    """The 76x50 matrix of a source at the corner mid-points (batoid_rubin DoF convention)."""
+    if source == "bundled":
+        return C.SensitivityMatrix.from_bundled()
+    if source == "ts_ofc":
+        return C.SensitivityMatrix.from_ts_ofc(fields_deg=C.corner_mid_field_points_deg())
+    raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
+
+
+def build_solver(get) -> C.OFCSolver:
+    """An OFCSolver from parameter values (``get(name)``); raises ConfigError naming the problem."""
+    spec = C.load_dof_spec()
+    band = str(get("band"))
+    if band not in C.BANDS:
+        raise ConfigError(f"band must be one of {C.BANDS}, got {band!r}")
+    mask = np.asarray(list(get("dof_mask")), dtype=bool)
+    if mask.shape != (C.N_DOF,):
+        raise ConfigError(f"dof_mask must hold {C.N_DOF} booleans, got {mask.size}")
+    scale = float(get("max_step_scale"))
+    return C.OFCSolver(
+        sensitivity(str(get("matrix_source"))), band=band, method=str(get("method")),
+        n_modes=int(get("n_modes")), alpha=float(get("alpha")), weights=str(get("weights")),
+        kp=float(get("kp")), ki=float(get("ki")), dof_mask=mask,
+        clip_range="dof.yaml" if get("clip_to_range") else None,
+        max_step=spec.max_step * scale if scale > 0 else None,
+        allow_partial=bool(get("allow_partial")), max_condition=float(get("max_condition")),
+        dof_spec=spec)
+
+
+class OfcNode(Node):
+    """Optical feedback controller node. Keyword arguments go to :class:`rclpy.node.Node`."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self._lock = threading.RLock()
+        self._declare_parameters()
+        self.solver = build_solver(self._param)
+        self.dry_run = bool(self._param("dry_run"))
+        self.frame_id = str(self._param("frame_id"))
+        # Build the inverse of the all-corners case now, so that the first visit is fast.
+        self.solver.estimate(self.solver.intrinsic_nm)
+        self.refused = RejectionCounter()
+        self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
+                      "resets": 0}
+        self.last_status = "none yet"
+        self.last_ms = float("nan")
+        self.pub = self.create_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC, self._on_vector,
+                                            OUTPUT_QOS)
+        self.srv = self.create_service(Trigger, "~/reset", self._on_reset)
+        self._diag_timer = self.create_timer(self._param("diagnostics_period_s"),
+                                             self.publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(
+            f"OFC ready: matrix {self._param('matrix_source')}, {self.solver.method} "
+            f"({self.solver.n_modes} modes), kp {self.solver.kp}, ki {self.solver.ki}, band "
+            f"{self.solver.band}, allow_partial {self.solver.allow_partial}, "
+            f"dry_run {self.dry_run}")
+
+    # ------------------------------------------------------------------ parameters
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def _declare_parameters(self) -> None:
+        d = self.declare_parameter
+        d("band", "r", describe("Band whose intrinsic (design) wavefront is subtracted.",
+                                constraints="u | g | r | i | z | y | ref"))
+        d("matrix_source", "bundled", describe(
+            "Sensitivity matrix: bundled (this project's, from the batoid simulator) or "
+            "ts_ofc (Rubin's, converted to the DofCorrection DoF convention).",
+            constraints=" | ".join(MATRIX_SOURCES)))
+        d("method", "tsvd", describe("Pseudo-inverse: tsvd (truncated SVD) or tikhonov.",
+                                     constraints="tsvd | tikhonov"))
+        d("n_modes", 12, describe("Singular modes kept by the truncated SVD.",
+                                  int_range=(1, C.N_DOF)))
+        d("alpha", 1e-3, describe(
+            "Tikhonov regulariser, as a fraction of the largest normalised singular value.",
+            fp_range=(1e-9, 1.0)))
+        d("weights", "range-fwhm", describe(
+            "DoF normalisation weights: range-fwhm (ts_ofc), range (dof.yaml) or none.",
+            constraints="range-fwhm | range | none"))
+        d("kp", 0.18, describe("Proportional gain.", fp_range=(0.0, 1.0)))
+        d("ki", 0.022, describe("Integral gain (0 = pure P controller).", fp_range=(0.0, 1.0)))
+        d("dof_mask", [True] * C.N_DOF, describe(
+            "50 booleans: False DoFs are not used and never move (order of dof.yaml)."))
+        d("allow_partial", False, describe(
+            "Use the valid corners only when some are invalid (else refuse the visit)."))
+        d("max_step_scale", 1.0, describe(
+            "Per-visit step limit as a multiple of dof.yaml's max_step (0 = no limit).",
+            fp_range=(0.0, 100.0)))
+        d("clip_to_range", True, describe(
+            "Keep the accumulated DoF state within dof.yaml's ranges."))
+        d("max_condition", 1e6, describe(
+            "Refuse when the effective condition number of the inverse exceeds this.",
+            fp_range=(1.0, 1e15)))
+        d("dry_run", False, describe(
+            "Compute and publish corrections flagged dry_run, without advancing the state."))
+        d("frame_id", "telescope", describe("frame_id of DofCorrection."))
+        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].", read_only=True,
+                                                fp_range=(0.05, 60.0)))
+
+    def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+        if not any(n in new for n in _SOLVER_PARAMS):
+            return result(True)
+
+        def get(n):
+            return new[n] if n in new else self._param(n)
+
+        try:
+            build_solver(get)
+        except (ConfigError, ValueError, TypeError) as exc:
+            return result(False, str(exc))
+        return result(True)
+
+    def _apply_parameters(self, params: Sequence[Parameter]) -> None:
+        names = {p.name for p in params}
+        with self._lock:
+            self.dry_run = bool(self._param("dry_run"))
+            self.frame_id = str(self._param("frame_id"))
+            if names & set(_SOLVER_PARAMS):
+                old, new = self.solver, build_solver(self._param)
+                new.dof_total = old.dof_total.copy()
+                new.integral = old.integral.copy()
+                new.n_steps = old.n_steps
+                new.estimate(new.intrinsic_nm)
+                self.solver = new
+                self.get_logger().info(f"solver rebuilt for {sorted(names)}; state kept")
+
+    # ------------------------------------------------------------------ control
+    def _on_vector(self, msg: WavefrontVector) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        try:
+            z, valid, problem = vector_from_msg(msg)
+            with self._lock:
+                self.stats["vectors"] += 1
+                dry = self.dry_run
+                s = self.solver
+                if problem is not None:
+                    out = self._refusal(problem)
+                else:
+                    saved = (s.dof_total.copy(), s.integral.copy(), s.n_steps)
+                    out = s.step(z, valid)
+                    if dry:
+                        s.dof_total, s.integral, s.n_steps = saved
+        except Exception as exc:  # noqa: BLE001 - a message must never crash the node
+            out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
+            dry = self.dry_run
+        self._publish(stamp, out, dry)
+
+    def _refusal(self, status: str) -> C.OFCResult:
+        s = self.solver
+        return C.OFCResult(np.zeros(C.N_DOF), s.dof_total.copy(), False, status, float("nan"),
+                           float("nan"), 0)
+
+    def _publish(self, stamp: int, out: C.OFCResult, dry: bool) -> None:
+        with self._lock:
+            if out.valid:
+                self.stats["corrections_valid"] += 1
+            else:
+                self.stats["corrections_refused"] += 1
+            self.last_status = out.status
+            self.last_ms = out.elapsed_s * 1e3
+        if not out.valid:
+            tag = out.status.split(":", 1)[0]
+            self.refused.add(tag, out.status)
+            self.get_logger().warning(f"visit {stamp}: correction refused: {out.status}")
+        self.pub.publish(dof_correction_msg(
+            stamp_ns=stamp, frame_id=self.frame_id, dof=out.dof, dof_total=out.dof_total,
+            valid=out.valid, status=out.status, wavefront_rms_nm=out.wavefront_rms_nm,
+            predicted_residual_rms_nm=out.predicted_residual_rms_nm, dry_run=dry,
+            n_modes_used=out.n_modes_used))
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
+        with self._lock:
+            n = self.solver.n_steps
+            self.solver.reset()
+            self.stats["resets"] += 1
+        response.success = True
+        response.message = f"controller state cleared (it had accumulated {n} visit(s))"
+        self.get_logger().info(response.message)
+        return response
+
+    # ------------------------------------------------------------------ diagnostics
+    def diagnostics(self):
+        with self._lock:
+            stats = dict(self.stats)
+            s = self.solver
+            values = [("state", "ready"), ("matrix_source", self._param("matrix_source")),
+                      ("method", s.method), ("n_modes", s.n_modes), ("kp", s.kp), ("ki", s.ki),
+                      ("band", s.band), ("allow_partial", s.allow_partial),
+                      ("dry_run", self.dry_run), ("n_steps", s.n_steps),
+                      ("dof_total_norm", f"{np.linalg.norm(s.dof_total):.4g}"),
+                      *stats.items(), ("last_status", self.last_status),
+                      ("last_step_ms", f"{self.last_ms:.2f}")]
+        values += self.refused.key_values()
+        if self.refused.recent(10.0):
+            level, message = WARN, f"recently refused a visit: {self.refused.last_message}"
+        else:
+            level, message = OK, "ready"
+        return diagnostic_status(f"{self.get_name()}: optical feedback control", level,
+                                 message, values, hardware_id="aos_ofc")
+
+    def publish_diagnostics(self) -> None:
+        try:
+            self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
+                                                    [self.diagnostics()]))
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"diagnostics failed: {exc}")
+
+
+def main(args: list[str] | None = None) -> int:
+    """``ofc_node [--ros-args ...]``: run this node alone (parameters: config/params.yaml)."""
+    from cwfs_ros.launch import run_node_main
+
+    return run_node_main(NODE_NAME, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,486 @@
+"""wavefront_node: donut image pairs in, per-corner wavefronts and the visit's 76-vector out.
+
+Topics (relative names; in the root namespace they are the ones below)
+---------------------------------------------------------------------
+in   ``/aos/wfs/<corner>/<side>/image``  sensor_msgs/Image, side ``intra`` | ``extra``, one
+     subscription per served corner and side (:data:`IMAGE_QOS`). ``header.stamp`` is the
+     exposure time; the intra and extra images of a visit carry equal stamps.
+out  ``/aos/wfs/<corner>/wavefront``     cwfs_msgs/CornerWavefront, as soon as that corner's
+     pair is estimated (valid=false with a status naming the problem otherwise).
+in   ``/aos/wfs/<corner>/wavefront``     for corners served by *other* processes, when
+     ``assemble`` is true: the vector is assembled from CornerWavefront messages wherever
+     they were produced.
+out  ``/aos/wfs/wavefront``              cwfs_msgs/WavefrontVector, when the four corners of a
+     visit are in, or after ``visit_timeout_s`` with the missing corners marked invalid.
+out  ``/diagnostics``                    state, counts of rejected inputs and the last reason.
+
+Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
+(:class:`cwfs_ros.core.corner_pool.CornerPool`), one corner per worker, warmed up at start.
+The pairing and assembly rules are in :mod:`cwfs_ros.core.visits`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future
+
+from cwfs_msgs.msg import CornerWavefront, WavefrontVector
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from cwfs_ros.core.corner_pool import (
+    CornerJob,
+    CornerOutcome,
+    CornerPool,
+    EstimatorSettings,
+    invalid_outcome,
+    validate_settings,
+)
+from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.core.images import FLIPS, Orientation
+from cwfs_ros.core.visits import (
+    CORNERS,
+    SIDES,
+    CornerEntry,
+    PairingBuffer,
+    PairReady,
+    Rejection,
+    VisitAssembler,
+    VisitVector,
+    load_corner_fields,
+)
+
+from .common import (
+    DIAGNOSTICS_QOS,
+    ERROR,
+    IMAGE_QOS,
+    OK,
+    OUTPUT_QOS,
+    WARN,
+    RejectionCounter,
+    describe,
+    diagnostic_status,
+    diagnostics_array,
+    result,
+)
+from .convert import (
+    corner_entry_from_msg,
+    corner_wavefront_msg,
+    image_record_from_msg,
+    wavefront_vector_msg,
+)
+
+__all__ = ["WavefrontNode", "main"]
+
+NODE_NAME = "wavefront_node"
+_SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px")
+_SOLVERS = ("exp", "fft", "lsq")
+
+
+def image_topic(corner: str, side: str) -> str:
+    return f"aos/wfs/{corner}/{side}/image"
+
+
+def corner_topic(corner: str) -> str:
+    return f"aos/wfs/{corner}/wavefront"
+
+
+VECTOR_TOPIC = "aos/wfs/wavefront"
+
+
+class WavefrontNode(Node):
+    """Pairs images, estimates corners in parallel processes, publishes the wavefronts.
+
+    Keyword arguments go to :class:`rclpy.node.Node` (``context``, ``parameter_overrides``,
+    ``cli_args``, ``namespace`` ...).
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self._lock = threading.RLock()
+        self._declare_parameters()
+        p = self._param
+        corners = list(p("corners"))
+        bad = [c for c in corners if c not in CORNERS] or ([] if corners else ["(none)"])
+        if bad or len(set(corners)) != len(corners):
+            raise ConfigError(f"parameter corners must be distinct names among {CORNERS}, "
+                              f"got {corners}")
+        self.corners = tuple(c for c in CORNERS if c in corners)
+        self.fields = load_corner_fields(p("sensor_config") or None)
+        missing = [c for c in self.corners if c not in self.fields]
+        if missing:
+            raise ConfigError(f"no field points for corners {missing} in the sensor config")
+        self.settings = self._settings_from(lambda n: p(n))
+        validate_settings(self.settings)
+        self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
+                             for c in self.corners for s in SIDES}
+        self.frame_id = p("frame_id")
+        tol_ns = int(round(p("pairing_tolerance_s") * 1e9))
+        timeout = p("visit_timeout_s")
+        self.pairing = PairingBuffer(self.corners, tolerance_ns=tol_ns, timeout_s=timeout)
+        self.assemble = bool(p("assemble"))
+        self.assembler = (VisitAssembler(tolerance_ns=tol_ns, timeout_s=timeout)
+                          if self.assemble else None)
+        self.rejected = RejectionCounter()
+        self.stats = {"images": 0, "pairs": 0, "corners_valid": 0, "corners_invalid": 0,
+                      "visits_published": 0, "visits_incomplete": 0}
+        self.last_compute_ms: dict[str, float] = {}
+        self.last_status: dict[str, str] = {}
+
+        # Worker processes, warmed up in the background.
+        self.pool = CornerPool(self.corners, p("workers"))
+        self._warm: dict[str, dict] = {}
+        self._warm_generation = 0
+        self._start_warm_up()
+
+        self._cb_images = MutuallyExclusiveCallbackGroup()
+        self._cb_timers = MutuallyExclusiveCallbackGroup()
+        self._cb_remote = ReentrantCallbackGroup()
+        self.pub_corner = {c: self.create_publisher(CornerWavefront, corner_topic(c), OUTPUT_QOS)
+                           for c in self.corners}
+        self.pub_vector = (self.create_publisher(WavefrontVector, VECTOR_TOPIC, OUTPUT_QOS)
+                           if self.assemble else None)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._subs = []
+        for c in self.corners:
+            for s in SIDES:
+                self._subs.append(self.create_subscription(
+                    Image, image_topic(c, s), self._image_callback(c, s), IMAGE_QOS,
+                    callback_group=self._cb_images))
+        if self.assemble:
+            for c in CORNERS:
+                if c not in self.corners:
+                    self._subs.append(self.create_subscription(
+                        CornerWavefront, corner_topic(c), self._on_remote_corner, OUTPUT_QOS,
+                        callback_group=self._cb_remote))
+        self._expiry_timer = self.create_timer(0.1, self._expire,
+                                               callback_group=self._cb_timers)
+        self._diag_timer = self.create_timer(p("diagnostics_period_s"), self.publish_diagnostics,
+                                             callback_group=self._cb_timers)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(
+            f"serving corners {', '.join(self.corners)} with {self.pool.n_workers} worker "
+            f"process(es) (affinity {self.pool.affinity}); assemble={self.assemble}; "
+            f"settings {self.settings}")
+
+    # ------------------------------------------------------------------ parameters
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def _declare_parameters(self) -> None:
+        d = self.declare_parameter
+        d("instrument", "lsst", describe(
+            "Instrument model: a config/instruments/<name>.yaml name or a path to one."))
+        d("band", "r", describe("Filter band of the optical model.",
+                                constraints="u | g | r | i | z | y"))
+        d("solver", "exp", describe("TIE solver: exp (series expansion), fft, lsq.",
+                                    constraints=" | ".join(_SOLVERS)))
+        d("outer_iterations", 0, describe(
+            "Outer compensation iterations; 0 = the value of config/algorithm.yaml.",
+            int_range=(0, 100)))
+        d("pad_px", 0, describe(
+            "Background padding [px] added around each stamp before estimation (border "
+            "median), for stamps cut so tight that the estimator rejects the donut as touching "
+            "the edge; 0 = none (160 px corner stamps need none).",
+            int_range=(0, 256)))
+        d("pairing_tolerance_s", 0.001, describe(
+            "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
+            fp_range=(0.0, 10.0)))
+        d("visit_timeout_s", 2.0, describe(
+            "How long [s] an image waits for its partner, and a visit for its four corners, "
+            "before it is dropped / published with the missing corners invalid (checked "
+            "every 0.1 s).",
+            fp_range=(0.05, 600.0)))
+        d("workers", 0, describe(
+            "Worker processes for the corner estimates; 0 = min(#corners, #CPUs).",
+            read_only=True, int_range=(0, 64)))
+        d("corners", list(CORNERS), describe(
+            "Corners served by this instance (subset of R00 R04 R40 R44).", read_only=True))
+        d("assemble", True, describe(
+            "Assemble and publish the 76-vector here, subscribing to the CornerWavefront "
+            "topics of the corners served elsewhere.", read_only=True))
+        d("sensor_config", "", describe(
+            "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
+            read_only=True))
+        d("frame_id", "focal_plane", describe("frame_id of the published messages."))
+        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].",
+                                                read_only=True, fp_range=(0.05, 60.0)))
+        for c in CORNERS:
+            for s in SIDES:
+                d(f"sensors.{c}.{s}.rot90", 0, describe(
+                    f"Quarter turns (numpy.rot90, counter-clockwise) that bring the {c} {s} "
+                    "image into the focal-plane frame; applied before the flip.",
+                    int_range=(0, 3)))
+                d(f"sensors.{c}.{s}.flip", "none", describe(
+                    f"Flip of the {c} {s} image after the rotation: none, lr (x -> -x) or "
+                    "ud (y -> -y).", constraints=" | ".join(FLIPS)))
+
+    @staticmethod
+    def _settings_from(get) -> EstimatorSettings:
+        return EstimatorSettings(instrument=str(get("instrument")), band=str(get("band")),
+                                 solver=str(get("solver")),
+                                 outer_iterations=int(get("outer_iterations")),
+                                 pad_px=int(get("pad_px")))
+
+    @staticmethod
+    def _orientation_from(corner: str, side: str, get) -> Orientation:
+        return Orientation(int(get(f"sensors.{corner}.{side}.rot90")),
+                           str(get(f"sensors.{corner}.{side}.flip")))
+
+    def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+
+        def get(n):
+            return new[n] if n in new else self._param(n)
+
+        if any(n in new for n in _SETTINGS_PARAMS):
+            if get("solver") not in _SOLVERS:
+                return result(False, f"solver must be one of {_SOLVERS}, got {get('solver')!r}")
+            try:
+                validate_settings(self._settings_from(get))
+            except ConfigError as exc:
+                return result(False, str(exc))
+        for n, v in new.items():
+            if n.startswith("sensors.") and n.endswith(".flip") and v not in FLIPS:
+                return result(False, f"{n} must be one of {FLIPS}, got {v!r}")
+        return result(True)
+
+    def _apply_parameters(self, params: Sequence[Parameter]) -> None:
+        names = {p.name for p in params}
+        with self._lock:
+            if "pairing_tolerance_s" in names:
+                tol = int(round(self._param("pairing_tolerance_s") * 1e9))
+                self.pairing.tolerance_ns = tol
+                if self.assembler is not None:
+                    self.assembler.tolerance_ns = tol
+            if "visit_timeout_s" in names:
+                self.pairing.timeout_s = self._param("visit_timeout_s")
+                if self.assembler is not None:
+                    self.assembler.timeout_s = self._param("visit_timeout_s")
+            if "frame_id" in names:
+                self.frame_id = self._param("frame_id")
+            for c in self.corners:
+                for s in SIDES:
+                    if any(n.startswith(f"sensors.{c}.{s}.") for n in names):
+                        self.orientations[(c, s)] = self._orientation_from(c, s, self._param)
+            if names & set(_SETTINGS_PARAMS):
+                self.settings = self._settings_from(self._param)
+                self.get_logger().info(f"estimator settings now {self.settings}; re-warming")
+                self._start_warm_up()
+
+    # ------------------------------------------------------------------ warm-up
+    def _start_warm_up(self) -> None:
+        with self._lock:
+            self._warm_generation += 1
+            gen = self._warm_generation
+            self._warm = {}
+        t0 = time.monotonic()
+        futures = self.pool.warm_up(
+            {c: (self.fields[c]["intra"], self.fields[c]["extra"]) for c in self.corners},
+            self.settings)
+        for f in futures:
+            f.add_done_callback(lambda f, gen=gen: self._warm_done(f, gen, t0))
+
+    def _warm_done(self, f: Future, gen: int, t0: float) -> None:
+        try:
+            info = f.result()
+        except BaseException as exc:  # noqa: BLE001
+            info = {"corner": "?", "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        with self._lock:
+            if gen != self._warm_generation:
+                return
+            self._warm[info["corner"]] = info
+            done = len(self._warm) == len(self.corners)
+        if not info.get("ok"):
+            self.get_logger().error(f"warm-up of {info['corner']} failed: {info.get('error')}")
+        if done:
+            self.get_logger().info(f"workers warm after {time.monotonic() - t0:.2f} s")
+
+    @property
+    def ready(self) -> bool:
+        """All served corners have warm worker caches."""
+        with self._lock:
+            return len(self._warm) == len(self.corners) and all(
+                w.get("ok") for w in self._warm.values())
+
+    # ------------------------------------------------------------------ images
+    def _image_callback(self, corner: str, side: str):
+        def cb(msg: Image) -> None:
+            try:
+                self._on_image(msg, corner, side)
+            except Exception as exc:  # noqa: BLE001 - never let a message kill the node
+                self._reject(Rejection("internal_error", f"{corner} {side} image: "
+                                       f"{type(exc).__name__}: {exc}", corner, side))
+        return cb
+
+    def _on_image(self, msg: Image, corner: str, side: str) -> None:
+        rec = image_record_from_msg(msg, corner, side, time.monotonic())
+        if rec.error:
+            self._reject(Rejection(rec.error.split(":", 1)[0], f"{side} image of {corner}: "
+                                   f"{rec.error}", corner, side, rec.stamp_ns), warn=True)
+        with self._lock:
+            self.stats["images"] += 1
+            pair, rej = self.pairing.add(rec)
+        if rej is not None:
+            self._reject(rej, warn=True)
+        if pair is not None:
+            self._process_pair(pair)
+
+    def _process_pair(self, pair: PairReady) -> None:
+        c = pair.corner
+        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
+        with self._lock:
+            self.stats["pairs"] += 1
+            settings = self.settings
+            oi, oe = self.orientations[(c, "intra")], self.orientations[(c, "extra")]
+        if pair.error is not None:
+            tag = (pair.intra.error or pair.extra.error or "bad_image").split(":", 1)[0]
+            self._publish_outcome(invalid_outcome(c, pair.stamp_ns, tag, pair.error, fi, fe,
+                                                  settings.solver), frame=pair.intra.frame_id,
+                                  count=False)
+            return
+        job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
+                        settings, oi, oe)
+        fut = self.pool.submit(job)
+        fut.add_done_callback(lambda f, frame=pair.intra.frame_id: self._on_future(f, frame))
+
+    def _on_future(self, f: Future, frame: str) -> None:
+        try:
+            self._publish_outcome(f.result(), frame=frame)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"publishing a corner result failed: {exc}")
+
+    def _publish_outcome(self, out: CornerOutcome, frame: str = "", count: bool = True) -> None:
+        """Publish a corner's result (and assemble it). ``count``: count an invalid one as a
+        rejection (False when its cause was already counted, e.g. a decoding error)."""
+        c = out.corner
+        with self._lock:
+            self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
+            self.last_compute_ms[c] = out.compute_ms
+            self.last_status[c] = out.status
+        if not out.valid and count:
+            self._reject(Rejection(out.reason or "invalid", f"{c}: {out.status}", c, "",
+                                   out.stamp_ns), warn=True)
+        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
+        msg = corner_wavefront_msg(out, field_intra_deg=fi, field_extra_deg=fe,
+                                   frame_id=frame or self.frame_id)
+        self.pub_corner[c].publish(msg)
+        if self.assembler is not None:
+            self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status))
+
+    # ------------------------------------------------------------------ assembly
+    def _on_remote_corner(self, msg: CornerWavefront) -> None:
+        try:
+            self._assemble(corner_entry_from_msg(msg))
+        except Exception as exc:  # noqa: BLE001
+            self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
+
+    def _assemble(self, entry: CornerEntry) -> None:
+        with self._lock:
+            vec, rej = self.assembler.add(entry, time.monotonic())
+        if rej is not None:
+            self._reject(rej, warn=True)
+        if vec is not None:
+            self._publish_vector(vec)
+
+    def _publish_vector(self, vec: VisitVector) -> None:
+        with self._lock:
+            self.stats["visits_published"] += 1
+            if not vec.complete:
+                self.stats["visits_incomplete"] += 1
+            # Local corners that never produced a pair for this visit: close them, so that a
+            # late image is reported as late instead of starting a new visit.
+            closures = []
+            for c, st in zip(vec.corners, vec.statuses, strict=True):
+                if c in self.corners and st.startswith("missing"):
+                    closures += self.pairing.close(c, vec.stamp_ns, "visit published without it")
+        for r in closures:
+            self._reject(r, warn=True)
+        if not vec.complete:
+            self.get_logger().warning(f"visit {vec.stamp_ns} published incomplete: {vec.status}")
+        self.pub_vector.publish(wavefront_vector_msg(vec, self.frame_id))
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            unpaired = self.pairing.expire(now)
+        for r in unpaired:
+            self._reject(r, warn=True)
+            f = self.fields[r.corner]
+            self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
+                                                  f["intra"], f["extra"], self.settings.solver),
+                                  count=False)
+        if self.assembler is not None:
+            with self._lock:
+                due = self.assembler.expire(now)
+            for vec in due:
+                self._publish_vector(vec)
+
+    # ------------------------------------------------------------------ diagnostics
+    def _reject(self, rej: Rejection, warn: bool = False) -> None:
+        self.rejected.add(rej.reason, rej.message)
+        if warn:
+            self.get_logger().warning(f"rejected ({rej.reason}): {rej.message}")
+
+    def diagnostics(self):
+        with self._lock:
+            warm = dict(self._warm)
+            stats = dict(self.stats)
+            pending_images = self.pairing.pending_count()
+            pending_visits = self.assembler.pending_count() if self.assembler else 0
+            compute = dict(self.last_compute_ms)
+            last = dict(self.last_status)
+        failed = [w for w in warm.values() if not w.get("ok")]
+        if failed:
+            level, state = ERROR, "error"
+            message = "warm-up failed: " + "; ".join(f"{w['corner']}: {w.get('error')}"
+                                                      for w in failed)
+        elif len(warm) < len(self.corners):
+            level, state = WARN, "warming"
+            message = f"warming up workers ({len(warm)}/{len(self.corners)} corners ready)"
+        elif self.rejected.recent(10.0):
+            level, state = WARN, "ready"
+            message = f"ready; recently rejected input: {self.rejected.last_message}"
+        else:
+            level, state, message = OK, "ready", "ready"
+        values = [("state", state), ("corners", " ".join(self.corners)),
+                  ("workers", self.pool.n_workers), ("worker_restarts", self.pool.restarts),
+                  ("assemble", self.assemble), ("settings", str(self.settings)),
+                  *stats.items(), ("pending_images", pending_images),
+                  ("pending_visits", pending_visits)]
+        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
+        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
+        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
+                   sorted(warm.items())]
+        values += self.rejected.key_values()
+        return diagnostic_status(f"{self.get_name()}: wavefront estimation", level, message,
+                                 values, hardware_id="cwfs_corner_sensors")
+
+    def publish_diagnostics(self) -> None:
+        try:
+            arr = diagnostics_array(self.get_clock().now().to_msg(), [self.diagnostics()])
+            self.pub_diag.publish(arr)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"diagnostics failed: {exc}")
+
+    def destroy_node(self) -> None:
+        self.pool.shutdown(wait=False)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """``wavefront_node [--ros-args ...]``: run this node alone (parameters: config/params.yaml)."""
+    from cwfs_ros.launch import run_node_main
+
+    return run_node_main(NODE_NAME, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

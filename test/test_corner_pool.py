@@ -1,0 +1,98 @@
+"""The per-corner process pool: jobs never raise, orientation settings, worker crash recovery."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from cwfs_ros.core.corner_pool import (
+    CornerJob,
+    CornerPool,
+    EstimatorSettings,
+    run_corner_job,
+    synthetic_donut,
+    validate_settings,
+)
+from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.core.images import Orientation
+from cwfs_ros.core.visits import load_corner_fields
+
+FIELDS = load_corner_fields()
+
+
+def job(img_in, img_ex, corner="R44", **kw):
+    f = FIELDS[corner]
+    return CornerJob(corner, 123, img_in, img_ex, f["intra"], f["extra"],
+                     kw.pop("settings", EstimatorSettings()), **kw)
+
+
+def test_jobs_report_problems_instead_of_raising():
+    tiny = run_corner_job(job(np.ones((1, 1)), np.ones((1, 1))))
+    assert not tiny.valid and tiny.reason == "stamp_too_small"
+    assert tiny.status.startswith("stamp_too_small:") and np.all(np.isnan(tiny.zernikes_nm))
+    assert tiny.zernikes_nm.shape == (19,) and tiny.noll == tuple(range(4, 23))
+    d = synthetic_donut(160, 60.0, 0.61)
+    bad = d.copy()
+    bad[5, 5] = np.inf
+    assert run_corner_job(job(bad, d)).reason == "non_finite"
+    assert run_corner_job(job(d, np.zeros((160, 170)))).reason == "shape_mismatch"
+    cfg = run_corner_job(job(d, d, settings=EstimatorSettings(band="q")))
+    assert not cfg.valid and cfg.reason == "config" and "band" in cfg.status
+    padded = run_corner_job(job(np.ones((3, 3)), np.ones((3, 3)),
+                                settings=EstimatorSettings(pad_px=2)))
+    assert "received stamps intra 3x3, extra 3x3 px, padded by 2 px" in padded.status
+
+
+def test_validate_settings():
+    validate_settings(EstimatorSettings())
+    for bad in (EstimatorSettings(solver="nope"), EstimatorSettings(band="q"),
+                EstimatorSettings(instrument="no_such"), EstimatorSettings(pad_px=-1)):
+        with pytest.raises(ConfigError):
+            validate_settings(bad)
+
+
+def test_orientation_settings_undo_a_rotated_or_flipped_camera():
+    """A stamp delivered rotated / flipped, declared as such, gives the same wavefront."""
+    sim = pytest.importorskip("cwfs_ros.sim")
+    geo = sim.load_corner_geometry()["R04"]
+    tel = sim.perturbed_telescope(np.r_[20.0, np.zeros(49)])
+    rng = np.random.default_rng(5)
+    kw = dict(wavelength_nm=622.0, npix=160, n_photons=2e5, rng=rng)
+    intra = sim.render_donut(tel, geo.intra_field_deg, -1.5, **kw)
+    extra = sim.render_donut(tel, geo.extra_field_deg, 1.5, **kw)
+    ref = run_corner_job(job(intra, extra, "R04"))
+    assert ref.valid, ref.status
+    # camera delivers intra rotated by +90 deg and extra mirrored in x
+    got = run_corner_job(job(np.rot90(intra, 1), extra[:, ::-1], "R04",
+                             orient_intra=Orientation(3), orient_extra=Orientation(0, "lr")))
+    np.testing.assert_array_equal(got.zernikes_nm, ref.zernikes_nm)
+    # undeclared, the same stamps give a different (wrong) answer
+    wrong = run_corner_job(job(np.rot90(intra, 1), extra[:, ::-1], "R04"))
+    assert not wrong.valid or np.max(np.abs(wrong.zernikes_nm - ref.zernikes_nm)) > 20.0
+
+
+def test_pool_affinity_and_recovery_from_a_dead_worker():
+    pool = CornerPool(["R00", "R04", "R40"], n_workers=2)
+    try:
+        assert pool.affinity == {"R00": 0, "R04": 1, "R40": 0}
+        tiny = np.ones((1, 1))
+        # kill R00's worker while a job is queued behind the kill
+        killer = pool._submit("R00", os._exit, 3)
+        queued = pool.submit(job(tiny, tiny, "R00"))
+        out = queued.result(timeout=60)
+        assert killer.exception(timeout=60) is not None
+        assert not out.valid and out.reason == "worker_crashed" and out.corner == "R00"
+        # the slot is restarted: the next job runs normally
+        again = pool.submit(job(tiny, tiny, "R00")).result(timeout=60)
+        assert again.reason == "stamp_too_small" and pool.restarts == 1
+        # the other slot was not affected
+        other = pool.submit(job(tiny, tiny, "R04")).result(timeout=60)
+        assert other.reason == "stamp_too_small" and other.worker_pid != again.worker_pid
+        with pytest.raises(ConfigError):
+            pool.submit(job(tiny, tiny, "R44"))
+    finally:
+        pool.shutdown()
+    with pytest.raises(RuntimeError):
+        pool.submit(job(np.ones((1, 1)), np.ones((1, 1)), "R00"))

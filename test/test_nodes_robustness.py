@@ -1,0 +1,294 @@
+"""The nodes over real DDS with bad inputs, timeouts, runtime parameters and the reset service.
+
+Each test has its own rclpy Context and DDS domain (conftest fixtures). The wavefront node
+serves one corner (R00) with one worker here, to keep the warm-up short.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip("rclpy")
+
+from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from cwfs_ros.core import control as C  # noqa: E402
+from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
+from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.nodes.convert import image_msg  # noqa: E402
+from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
+from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
+
+T = 1_800_000_000_000_000_000
+SEC = 1_000_000_000
+
+
+def wait_for(cond, timeout, what):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def of(msgs, stamp):
+    return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
+
+
+@pytest.fixture
+def spin(ros_context):
+    """An executor spinning in a thread on the test's context; yields add(node)."""
+    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
+    th = threading.Thread(target=ex.spin, daemon=True)
+    nodes = []
+
+    def add(node):
+        nodes.append(node)
+        ex.add_node(node)
+        return node
+
+    th.start()
+    yield add
+    ex.shutdown(timeout_sec=2.0)
+    for n in nodes:
+        n.destroy_node()
+
+
+def raw_image(stamp, *, h=160, w=160, encoding="32FC1", step=None, data=None):
+    m = Image(height=h, width=w, encoding=encoding, step=step if step is not None else w * 4)
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+    m.data = data if data is not None else b"\0" * (m.step * h)
+    return m
+
+
+def test_wavefront_node_never_crashes_on_bad_input(ros_context, spin):
+    wf = spin(WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1),
+        Parameter("visit_timeout_s", value=0.6), Parameter("diagnostics_period_s", value=0.2)]))
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = {s: tester.create_publisher(Image, f"aos/wfs/R00/{s}/image", IMAGE_QOS)
+           for s in ("intra", "extra")}
+    corner, vector, diag = [], [], []
+    tester.create_subscription(CornerWavefront, "aos/wfs/R00/wavefront", corner.append,
+                               OUTPUT_QOS)
+    tester.create_subscription(WavefrontVector, "aos/wfs/wavefront", vector.append, OUTPUT_QOS)
+    tester.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
+    wait_for(lambda: wf.ready, 60, "warm-up")
+    wait_for(lambda: all(p.get_subscription_count() for p in pub.values()), 10, "discovery")
+
+    donut = synthetic_donut(160, 60.0, 0.61)
+    good = lambda s: image_msg(donut, s)  # noqa: E731
+    nan = donut.copy()
+    nan[80, 20:25] = np.nan
+    cases = {  # stamp -> (intra, extra, expected status prefix)
+        T + 1 * SEC: (raw_image(T, h=1, w=1), raw_image(T, h=1, w=1), "stamp_too_small"),
+        T + 2 * SEC: (image_msg(nan, 0), good(0), "non_finite"),
+        T + 3 * SEC: (raw_image(0, encoding="rgb8", step=480), good(0), "unsupported_encoding"),
+        T + 4 * SEC: (good(0), raw_image(0, step=100), "bad_step"),
+        T + 5 * SEC: (good(0), raw_image(0, data=b"\0" * 1000), "truncated_data"),
+        T + 6 * SEC: (image_msg(np.zeros((160, 160)), 0), good(0), "flat_or_empty"),
+        T + 7 * SEC: (good(0), raw_image(0, encoding="16UC1", data=b"\1" * (160 * 320 + 1),
+                                         step=320), "excess_data"),
+    }
+    for stamp, (intra, extra, _) in cases.items():
+        for side, m in (("intra", intra), ("extra", extra)):
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+            pub[side].publish(m)
+    unpaired = T + 8 * SEC
+    pub["intra"].publish(good(unpaired))
+    wait_for(lambda: all(of(corner, s) for s in [*cases, unpaired]), 20, "all corner results")
+    for stamp, (_, _, prefix) in cases.items():
+        (m,) = of(corner, stamp)
+        assert not m.valid and m.status.startswith(prefix), (prefix, m.status)
+        assert m.corner == "R00" and np.all(np.isnan(m.zernikes_nm))
+    (m,) = of(corner, unpaired)
+    assert not m.valid and m.status.startswith("unpaired") and "no extra image" in m.status
+
+    # duplicate (visit already paired) and late (partner already expired) images
+    pub["intra"].publish(raw_image(T + 1 * SEC, h=1, w=1))
+    pub["extra"].publish(good(unpaired))
+    # the vector of each visit times out with R04, R40, R44 missing (served nowhere)
+    wait_for(lambda: of(vector, unpaired), 10, "timed-out vector")
+    v = of(vector, T + 4 * SEC)[0]
+    assert list(v.corner_valid) == [False] * 4
+    assert "R00 bad_step" in v.status and "R44 missing" in v.status
+
+    def counts():
+        for arr in reversed(list(diag)):
+            for st in arr.status:
+                if st.name.startswith("wavefront_node"):
+                    return {kv.key: kv.value for kv in st.values}
+        return {}
+
+    wait_for(lambda: counts().get("rejected.late") == "1"
+             and counts().get("rejected.duplicate") == "1"
+             and counts().get("visits_incomplete") == str(len(cases) + 1), 5,
+             "late + duplicate + incomplete visits counted")
+    kv = counts()
+    for reason in ("stamp_too_small", "non_finite", "unsupported_encoding", "bad_step",
+                   "truncated_data", "flat_or_empty", "excess_data", "unpaired"):
+        assert int(kv.get(f"rejected.{reason}", 0)) >= 1, (reason, kv)
+    assert kv["state"] == "ready" and kv["corners_invalid"] == str(len(cases) + 1)
+    assert int(kv["visits_incomplete"]) == len(cases) + 1
+    assert len(corner) == len(cases) + 1  # one result per visit, none for the rejected ones
+
+    # ---- runtime parameters: invalid updates are rejected with a reason
+    for name, value, words in [
+        ("solver", "bogus", "solver must be one of"),
+        ("band", "q", "unknown band"),
+        ("instrument", "no_such_instrument", "instrument"),
+        ("pairing_tolerance_s", -1.0, "out of range"),
+        ("outer_iterations", 1000, "out of range"),
+        ("workers", 3, "read-only"),
+        ("corners", ["R04"], "read-only"),
+        ("sensors.R00.intra.flip", "diagonal", "flip"),
+        ("visit_timeout_s", "soon", "type"),
+    ]:
+        (res,) = wf.set_parameters([Parameter(name, value=value)])
+        assert not res.successful and words in res.reason, (name, res.reason)
+    (res,) = wf.set_parameters([Parameter("band", value="g")])
+    assert res.successful and wf.settings.band == "g"
+    wait_for(lambda: wf.ready, 30, "re-warm after the band change")
+    (res,) = wf.set_parameters([Parameter("sensors.R00.extra.rot90", value=2)])
+    assert res.successful and wf.orientations[("R00", "extra")].rot90 == 2
+
+
+def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
+    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("diagnostics_period_s", value=0.2)]))
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    out: list[DofCorrection] = []
+    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    reset = tester.create_client(Trigger, "ofc_node/reset")
+    wait_for(lambda: pub.get_subscription_count() > 0 and reset.service_is_ready(), 10,
+             "discovery")
+
+    sm = C.SensitivityMatrix.from_bundled()
+    ref = C.OFCSolver(sm, band="r")
+    x = np.zeros(50)
+    x[[0, 5, 9]] = [15.0, -20.0, 0.004]
+    y = ref.intrinsic_nm + sm.matrix_nm @ x
+
+    def send(stamp, z=y, valid=(True,) * 4, corners=("R00", "R04", "R40", "R44")):
+        m = WavefrontVector()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+        m.zernikes_nm = np.asarray(z, dtype=float)
+        m.corner_valid = list(valid)
+        m.corners = list(corners)
+        pub.publish(m)
+        wait_for(lambda: of(out, stamp), 5, f"correction {stamp}")
+        return of(out, stamp)[0]
+
+    d1 = send(T + 1)
+    expected = ref.step(y)
+    assert d1.valid and d1.status == "ok"
+    np.testing.assert_allclose(d1.dof, expected.dof, rtol=1e-9, atol=1e-12)
+    assert d1.wavefront_rms_nm == pytest.approx(expected.wavefront_rms_nm)
+    assert d1.predicted_residual_rms_nm == pytest.approx(expected.predicted_residual_rms_nm)
+    d2 = send(T + 2)
+    np.testing.assert_allclose(d2.dof_total, np.asarray(d1.dof) + np.asarray(d2.dof))
+
+    # dry run: computed and flagged, the state does not advance
+    assert ofc.set_parameters([Parameter("dry_run", value=True)])[0].successful
+    d3 = send(T + 3)
+    d4 = send(T + 4)
+    assert d3.dry_run and d4.dry_run and d3.valid
+    np.testing.assert_allclose(d3.dof, d4.dof)
+    np.testing.assert_allclose(d4.dof_total, np.asarray(d2.dof_total) + np.asarray(d4.dof))
+    assert ofc.set_parameters([Parameter("dry_run", value=False)])[0].successful
+
+    # refusals: invalid corner, NaN in a valid corner, bad layout
+    bad = send(T + 5, valid=(True, True, False, True))
+    assert not bad.valid and bad.status.startswith("corner_invalid") and "R40" in bad.status
+    z = y.copy()
+    z[3] = np.nan
+    assert send(T + 6, z=z).status.startswith("non_finite")
+    lay = send(T + 7, corners=("R04", "R00", "R40", "R44"))
+    assert not lay.valid and lay.status.startswith("bad_layout")
+    np.testing.assert_allclose(lay.dof_total, d2.dof_total)  # refusals leave the state alone
+    assert ofc.set_parameters([Parameter("allow_partial", value=True)])[0].successful
+    assert send(T + 8, valid=(True, True, False, True)).valid
+
+    # reset service
+    fut = reset.call_async(Trigger.Request())
+    wait_for(fut.done, 5, "reset response")
+    assert fut.result().success and "cleared" in fut.result().message
+    assert np.all(ofc.solver.dof_total == 0) and ofc.solver.n_steps == 0
+
+    # runtime parameters
+    for name, value, words in [
+        ("dof_mask", [True] * 49, "50"),
+        ("dof_mask", [False] * 50, "excludes every DoF"),
+        ("matrix_source", "zemax", "matrix_source"),
+        ("method", "pinv", "method"),
+        ("band", "q", "band"),
+        ("n_modes", 0, "out of range"),
+        ("kp", 1.5, "out of range"),
+        ("weights", "nonsense", "not found"),
+    ]:
+        (res,) = ofc.set_parameters([Parameter(name, value=value)])
+        assert not res.successful and words in res.reason, (name, res.reason)
+    before = ofc.solver
+    assert ofc.set_parameters([Parameter("matrix_source", value="ts_ofc")])[0].successful
+    assert ofc.solver is not before and ofc.solver.sensitivity.source == "ts_ofc"
+    d9 = send(T + 9)
+    assert d9.valid  # the ts_ofc matrix (converted) also closes the loop on this vector
+    assert d9.predicted_residual_rms_nm < d9.wavefront_rms_nm
+
+
+def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, spin):
+    """One instance serves R00; R04, R40, R44 come as CornerWavefront from 'elsewhere'."""
+    wf = spin(WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1),
+        Parameter("visit_timeout_s", value=5.0)]))
+    tester = spin(rclpy.create_node("remote", context=ros_context))
+    img = {s: tester.create_publisher(Image, f"aos/wfs/R00/{s}/image", IMAGE_QOS)
+           for s in ("intra", "extra")}
+    remote = {c: tester.create_publisher(CornerWavefront, f"aos/wfs/{c}/wavefront", OUTPUT_QOS)
+              for c in ("R04", "R40", "R44")}
+    vectors: list[WavefrontVector] = []
+    tester.create_subscription(WavefrontVector, "aos/wfs/wavefront", vectors.append, OUTPUT_QOS)
+    wait_for(lambda: wf.ready, 60, "warm-up")
+    wait_for(lambda: all(p.get_subscription_count() for p in [*img.values(),
+                                                              *remote.values()]), 10,
+             "discovery")
+
+    def corner_msg(c, stamp, z, valid=True):
+        m = CornerWavefront(corner=c, valid=valid, status="ok" if valid else "x: remote bad")
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+        m.noll = list(range(4, 23))
+        m.zernikes_nm = [float(v) for v in z]
+        return m
+
+    donut = synthetic_donut(160, 60.0, 0.61)
+    for k, stamp in enumerate((T, T + SEC)):
+        for c, pub in remote.items():
+            z = np.arange(19.0) + 100 * ("R00", "R04", "R40", "R44").index(c)
+            if k == 1 and c == "R40":
+                z[3] = np.nan  # flagged valid but unusable
+            pub.publish(corner_msg(c, stamp, z))
+        for pub in img.values():
+            pub.publish(image_msg(donut, stamp))
+    wait_for(lambda: of(vectors, T + SEC), 20, "both vectors")
+    (v,) = of(vectors, T)
+    assert list(v.corner_valid) == [True] * 4 and v.status == "ok"
+    z = np.asarray(v.zernikes_nm)
+    for i in (1, 2, 3):
+        np.testing.assert_array_equal(z[19 * i:19 * i + 19], np.arange(19.0) + 100 * i)
+    assert np.all(np.isfinite(z[:19]))  # R00 estimated locally
+    (v2,) = of(vectors, T + SEC)
+    assert list(v2.corner_valid) == [True, True, False, True]
+    assert "R40 bad_corner_wavefront" in v2.status
