@@ -399,8 +399,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     # Align each image so that its centroid falls where the mapping, with the current
     # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
     # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any
-    # term on a vignetted pupil; different for the two halves of a split sensor.  Tip/tilt
-    # itself then has no effect and is not measured (it is solved for as a nuisance term).
+    # term on a vignetted pupil, and differs between the two halves of a split sensor.
+    # Tip/tilt itself then has no effect; it is solved for as a nuisance term and dropped.
     m_in, m_ex = geom.mapping_intra, geom.mapping_extra
     base_in = np.array(don_in.centroid_xy) - geom.centroid_model_intra
     base_ex = np.array(don_ex.centroid_xy) - geom.centroid_model_extra
