@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -49,3 +50,13 @@ def ros_context(ros_domain):
         yield ctx
     finally:
         ctx.try_shutdown()
+
+
+def wait_for(cond, timeout: float, what: str) -> None:
+    """Poll ``cond()`` every 10 ms until true; fail the test after ``timeout`` seconds."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")

@@ -100,13 +100,7 @@ class Tester:
         return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
 
 
-def wait_for(cond, timeout, what):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+from conftest import wait_for  # noqa: E402
 
 
 @pytest.fixture

@@ -7,7 +7,6 @@ serves one corner (R00) with one worker here, to keep the warm-up short.
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -34,13 +33,7 @@ T = 1_800_000_000_000_000_000
 SEC = 1_000_000_000
 
 
-def wait_for(cond, timeout, what):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+from conftest import wait_for  # noqa: E402
 
 
 def of(msgs, stamp):
