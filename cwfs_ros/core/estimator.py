@@ -236,8 +236,9 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     elif algo.solver == "fft":
         solver = IterativeFFT((n, n), spacing, region, basis, common, algo.inner_iterations)
     else:
-        solver = LeastSquares((n, n), spacing, region, basis, common, algo.edge_sigma_px *
-                              algo.oversample)
+        solver = LeastSquares((n, n), spacing, region, basis, common,
+                              algo.edge_sigma_px * algo.oversample, mappings=(m_in, m_ex),
+                              kappa=_kappa(m_in, common) - _kappa(m_ex, common))
     kappa = _kappa(m_in, common) - _kappa(m_ex, common)
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))

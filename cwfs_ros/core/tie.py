@@ -202,20 +202,41 @@ class LeastSquares:
     name = "lsq"
 
     def __init__(self, shape: tuple[int, int], spacing: float, region: np.ndarray,
-                 basis: ZernikeBasis, pupil: np.ndarray, edge_sigma: float = 1.0) -> None:
+                 basis: ZernikeBasis, pupil: np.ndarray, edge_sigma: float = 1.0,
+                 mappings: tuple | None = None, kappa: float | None = None) -> None:
         from scipy.ndimage import gaussian_filter
 
         self.jmax = basis.jmax
-        grid = np.zeros(shape[0] * shape[1])
+        n = shape[0] * shape[1]
+        grid = np.zeros(n)
         grid[region[pupil]] = 1.0
         model = gaussian_filter(grid.reshape(shape), edge_sigma) if edge_sigma > 0 else \
             grid.reshape(shape)
-        gy, gx = np.gradient(model, spacing)
         i0 = model.ravel()[region]
-        ix, iy = gx.ravel()[region], gy.ravel()[region]
-        b = ix * basis.dx[1:] + iy * basis.dy[1:] + i0 * (basis.dxx[1:] + basis.dyy[1:])
+        zx, zy = basis.dx[1:].astype(float), basis.dy[1:].astype(float)
+        if mappings is None:
+            # Isotropic response (paraxial): B_j = div(I grad Z_j).
+            ux, uy = zx, zy
+        else:
+            # Each image's samples move in the pupil by v = C A^-1 grad Z when the wavefront
+            # changes (A: that image's mapping Jacobian, anisotropic off axis); the
+            # difference image then changes by div(I (v_intra - v_extra)).
+            ux = np.zeros_like(zx)
+            uy = np.zeros_like(zy)
+            for m, sign in zip(mappings, (1.0, -1.0), strict=True):
+                det = m.det.astype(float)
+                c = m.c_px_per_nm * sign / kappa
+                ux += c * (m.jyy * zx - m.jxy * zy) / det
+                uy += c * (-m.jyx * zx + m.jxx * zy) / det
+        fx = np.zeros((self.jmax - 1, n))
+        fy = np.zeros((self.jmax - 1, n))
+        fx[:, region] = i0 * ux
+        fy[:, region] = i0 * uy
+        fx = fx.reshape(-1, *shape)
+        fy = fy.reshape(-1, *shape)
+        div = np.gradient(fx, spacing, axis=2) + np.gradient(fy, spacing, axis=1)
+        b = div.reshape(self.jmax - 1, n)[:, region]
         # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix.
-        b = b.astype(float)
         self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
         self._matrix[1:] = -np.linalg.solve(b @ b.T, b)
 
