@@ -1,0 +1,373 @@
+"""camera_sim_node: a ray-traced Rubin/LSST corner-sensor camera that obeys the OFC.
+
+Topics and services (relative names; in the root namespace they are the ones below)
+----------------------------------------------------------------------------------
+out  ``/aos/wfs/<corner>/<intra|extra>/image``  sensor_msgs/Image 32FC1, the 8 stamps of a
+     visit (4 corners x intra (SW1, detector -1.5 mm) / extra (SW0, +1.5 mm)), all with the
+     same ``header.stamp``
+out  ``/aos/sim/truth``          cwfs_msgs/SimTruth, same stamp: DoF state, true total and
+     intrinsic Zernikes at the corner mid points (layout of WavefrontVector), visit number
+in   ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection: a valid, non-dry-run correction is
+     added to the DoF state (used from the next rendered visit)
+out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored
+srv  ``~/trigger``               std_srvs/Trigger: render one visit now (the only way when
+     ``visit_period_s`` is 0)
+
+The telescope is :func:`cwfs_ros.sim.perturbed_telescope` at the current 50-DoF state (ts_ofc
+order and units, the batoid_rubin sign convention of ``DofCorrection``). Each visit is
+rendered by :func:`cwfs_ros.sim.render_donut` (photon tracing, random sub-stamp offsets,
+Poisson noise, sky subtracted) in a background thread, so the executor is never blocked;
+visits never overlap, and a period that falls while a visit is still rendering is skipped
+(logged and counted).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+from cwfs_msgs.msg import DofCorrection, SimTruth
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+from std_srvs.srv import Trigger
+
+from cwfs_ros.core.visits import CORNERS
+
+from .common import (
+    DIAGNOSTICS_QOS,
+    IMAGE_QOS,
+    OK,
+    OUTPUT_QOS,
+    WARN,
+    RejectionCounter,
+    describe,
+    diagnostic_status,
+    diagnostics_array,
+    ns_to_stamp,
+    result,
+)
+from .convert import image_msg
+
+__all__ = ["CameraSimNode", "N_DOF", "RIGID_SCALE", "SIDES", "main"]
+
+NODE_NAME = "camera_sim_node"
+N_DOF = 50
+SIDES = ("intra", "extra")
+IMAGE_TOPIC = "aos/wfs/{corner}/{side}/image"
+TRUTH_TOPIC = "aos/sim/truth"
+CORRECTION_TOPIC = "aos/ofc/dof_correction"
+# Per-unit-scale sigma of the random rigid-body perturbation of DoF 0..9
+# (M2 and camera hexapods: dz, dx, dy [um], rx, ry [deg]).
+RIGID_SCALE = np.array([8.0, 150.0, 150.0, 0.005, 0.005, 8.0, 150.0, 150.0, 0.005, 0.005])
+_FALLBACK_WAVELENGTH_NM = {"u": 365.0, "g": 480.0, "r": 622.0, "i": 754.0, "z": 869.0,
+                           "y": 971.0}
+_BANDS = tuple(_FALLBACK_WAVELENGTH_NM)
+
+
+def band_wavelength_nm(band: str) -> float:
+    """Effective wavelength of ``band`` (config/instruments/lsst.yaml, as ts_wep uses)."""
+    try:
+        from cwfs_ros.core.instrument import load_instrument
+
+        return float(load_instrument("lsst").wavelength_nm(band))
+    except Exception:  # noqa: BLE001 - the table below is the same data
+        return _FALLBACK_WAVELENGTH_NM[band]
+
+
+class CameraSimNode(Node):
+    """Simulated corner-sensor camera with a 50-DoF telescope state driven by DofCorrection."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self._lock = threading.RLock()
+        self._declare_parameters()
+        p = self._param
+        self.band = str(p("band"))
+        if self.band not in _BANDS:
+            raise ValueError(f"band must be one of {_BANDS}, got {self.band!r}")
+        wl = float(p("wavelength_nm"))
+        self.wavelength_nm = wl if wl > 0 else band_wavelength_nm(self.band)
+        self.frame_id = str(p("frame_id"))
+
+        dof = np.asarray(list(p("initial_dof")), dtype=np.float64).reshape(-1)
+        if dof.shape != (N_DOF,) or not np.all(np.isfinite(dof)):
+            raise ValueError(f"initial_dof must be {N_DOF} finite numbers, got {dof.size}")
+        seed = int(p("perturbation_seed"))
+        if seed >= 0:
+            prng = np.random.default_rng(seed)
+            dof[:10] += prng.normal(0.0, 1.0, 10) * float(p("perturbation_scale")) * RIGID_SCALE
+        self._dof = dof
+        rseed = int(p("render_seed"))
+        self._rng = np.random.default_rng(None if rseed < 0 else rseed)
+        self._act_rng = np.random.default_rng(None if rseed < 0 else rseed + 1)
+
+        from cwfs_ros import sim
+
+        self._sim = sim
+        self.geometry = sim.load_corner_geometry()
+        missing = [c for c in CORNERS if c not in self.geometry]
+        if missing:
+            raise ValueError(f"corner geometry lacks {missing}")
+        # The design (intrinsic) wavefront at the corner mid points: fixed for the band.
+        nominal = sim.perturbed_telescope(np.zeros(N_DOF), self.band)
+        self.intrinsic_nm = self._truth_vector(nominal)
+
+        self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
+                      "corrections_applied": 0, "corrections_ignored": 0}
+        self.ignored = RejectionCounter()
+        self.visit = 0
+        self.last_render_s = float("nan")
+        self.last_status = "no visit yet"
+        self._busy = False
+        self._closing = False
+        self._thread: threading.Thread | None = None
+
+        self.pubs = {(c, s): self.create_publisher(Image, IMAGE_TOPIC.format(corner=c, side=s),
+                                                   IMAGE_QOS)
+                     for c in CORNERS for s in SIDES}
+        self.pub_truth = self.create_publisher(SimTruth, TRUTH_TOPIC, OUTPUT_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.sub = self.create_subscription(DofCorrection, CORRECTION_TOPIC,
+                                            self._on_correction, OUTPUT_QOS)
+        self.srv = self.create_service(Trigger, "~/trigger", self._on_trigger)
+        period = float(p("visit_period_s"))
+        self._visit_timer = (self.create_timer(period, self._on_period) if period > 0 else None)
+        self._diag_timer = self.create_timer(float(p("diagnostics_period_s")),
+                                             self.publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.get_logger().info(
+            f"camera simulator ready: band {self.band} ({self.wavelength_nm:g} nm), "
+            f"{p('npix')} px stamps, {p('n_photons'):.3g} photons, "
+            + (f"a visit every {period:g} s" if period > 0 else "visits on ~/trigger only")
+            + f", apply_corrections {p('apply_corrections')}, "
+            f"|dof| {np.linalg.norm(self._dof):.4g}")
+
+    # ------------------------------------------------------------------ parameters
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def _declare_parameters(self) -> None:
+        d = self.declare_parameter
+        ro = {"read_only": True}
+        d("initial_dof", [0.0] * N_DOF, describe(
+            "Initial telescope state: 50 DoF, ts_ofc order and units [um | deg], batoid_rubin "
+            "(DofCorrection) signs.", **ro))
+        d("perturbation_seed", -1, describe(
+            "Seed of a random rigid-body perturbation added to DoF 0-9 at start (-1 = none).",
+            int_range=(-1, 2**31 - 1), **ro))
+        d("perturbation_scale", 1.0, describe(
+            "Scale of that perturbation: normal(0,1) x scale x [8, 150, 150, 0.005, 0.005] "
+            "[um, um, um, deg, deg] per hexapod.", fp_range=(0.0, 100.0), **ro))
+        d("band", "r", describe("Filter band of the optical model.",
+                                constraints="u | g | r | i | z | y", **ro))
+        d("wavelength_nm", 0.0, describe(
+            "Monochromatic wavelength [nm]; 0 = the band's effective wavelength (r: 622).",
+            fp_range=(0.0, 2000.0), **ro))
+        d("visit_period_s", 5.0, describe(
+            "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
+            "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
+        d("n_photons", 1e6, describe(
+            "Expected photons per donut (unvignetted pupil).", fp_range=(1.0, 1e9), **ro))
+        d("sky_per_pixel", 50.0, describe(
+            "Sky background [e-/px], added before Poisson noise and subtracted after.",
+            fp_range=(0.0, 1e6), **ro))
+        d("offset_px_max", 3.0, describe(
+            "Random donut offset in each axis, uniform in +-offset_px_max [px].",
+            fp_range=(0.0, 1000.0), **ro))
+        d("npix", 160, describe("Stamp side [px].", int_range=(16, 4096), **ro))
+        d("apply_corrections", True, describe(
+            "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
+        d("actuator_noise", 0.0, describe(
+            "Relative actuator error: each applied DoF is scaled by (1 + actuator_noise x "
+            "normal(0,1)).", fp_range=(0.0, 10.0)))
+        d("render_seed", -1, describe(
+            "Seed of the image noise, offsets and actuator noise (-1 = fresh entropy).",
+            int_range=(-1, 2**31 - 2), **ro))
+        d("frame_id", "focal_plane", describe("frame_id of the images and SimTruth.", **ro))
+        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].", read_only=True,
+                                                fp_range=(0.05, 60.0)))
+
+    def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
+        for prm in params:
+            if prm.name == "actuator_noise" and not (0.0 <= float(prm.value) <= 10.0):
+                return result(False, "actuator_noise must be in [0, 10]")
+        return result(True)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def dof_state(self) -> np.ndarray:
+        """A copy of the current 50-DoF telescope state."""
+        with self._lock:
+            return self._dof.copy()
+
+    @property
+    def busy(self) -> bool:
+        with self._lock:
+            return self._busy
+
+    def _truth_vector(self, telescope) -> np.ndarray:
+        return np.concatenate([
+            self._sim.true_zernikes_nm(telescope, self.geometry[c].mid_field_deg,
+                                       wavelength_nm=self.wavelength_nm)
+            for c in CORNERS])
+
+    # ------------------------------------------------------------------ corrections
+    def _on_correction(self, msg: DofCorrection) -> None:
+        dof = np.asarray(msg.dof, dtype=np.float64).reshape(-1)
+        reason = None
+        if not msg.valid:
+            reason = ("invalid", f"correction flagged invalid: {msg.status or 'no status'}")
+        elif msg.dry_run:
+            reason = ("dry_run", "correction is a dry run")
+        elif dof.shape != (N_DOF,) or not np.all(np.isfinite(dof)):
+            reason = ("bad_dof", f"dof must be {N_DOF} finite numbers")
+        elif not bool(self._param("apply_corrections")):
+            reason = ("not_applied", "apply_corrections is false")
+        if reason is not None:
+            with self._lock:
+                self.stats["corrections_ignored"] += 1
+            self.ignored.add(*reason)
+            self.get_logger().info(f"ignored DofCorrection ({reason[1]})")
+            return
+        noise = float(self._param("actuator_noise"))
+        with self._lock:
+            step = dof if noise <= 0 else dof * (1.0 + noise * self._act_rng.normal(size=N_DOF))
+            self._dof = self._dof + step
+            self.stats["corrections_applied"] += 1
+            norm = float(np.linalg.norm(self._dof))
+        self.get_logger().info(f"applied DofCorrection: |step| {np.linalg.norm(step):.4g}, "
+                               f"|dof| {norm:.4g}")
+
+    # ------------------------------------------------------------------ visits
+    def request_visit(self) -> tuple[bool, str]:
+        """Start rendering a visit in the background unless one is in progress."""
+        with self._lock:
+            if self._closing:
+                return False, "shutting down"
+            if self._busy:
+                self.stats["visits_skipped"] += 1
+                return False, f"visit {self.visit} is still rendering; request skipped"
+            self._busy = True
+            self.visit += 1
+            visit = self.visit
+            dof = self._dof.copy()
+            self._thread = threading.Thread(target=self._render_visit, args=(visit, dof),
+                                            name=f"camera_sim_visit_{visit}", daemon=True)
+            self._thread.start()
+        return True, f"visit {visit} started"
+
+    def _on_period(self) -> None:
+        ok, message = self.request_visit()
+        if not ok:
+            self.get_logger().warning(f"skipped a visit period: {message}")
+
+    def _on_trigger(self, request: Trigger.Request, response: Trigger.Response):
+        response.success, response.message = self.request_visit()
+        return response
+
+    def _render_visit(self, visit: int, dof: np.ndarray) -> None:
+        t0 = time.monotonic()
+        try:
+            stamp_ns = self.get_clock().now().nanoseconds
+            p = self._param
+            npix, n_photons = int(p("npix")), float(p("n_photons"))
+            sky, off_max = float(p("sky_per_pixel")), float(p("offset_px_max"))
+            tel = self._sim.perturbed_telescope(dof, self.band)
+            images = {}
+            for c in CORNERS:
+                g = self.geometry[c]
+                for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
+                                        ("extra", g.extra_field_deg, g.extra_offset_mm)):
+                    if self._closing:
+                        return
+                    offset = tuple(self._rng.uniform(-off_max, off_max, 2)) if off_max > 0 \
+                        else (0.0, 0.0)
+                    images[(c, side)] = self._sim.render_donut(
+                        tel, field, dz, wavelength_nm=self.wavelength_nm, npix=npix,
+                        n_photons=n_photons, sky_per_pixel=sky, offset_px=offset,
+                        rng=self._rng, poisson=True, subtract_sky=True)
+            truth = SimTruth()
+            truth.header.stamp = ns_to_stamp(stamp_ns)
+            truth.header.frame_id = self.frame_id
+            truth.dof_state = np.asarray(dof, dtype=np.float64)
+            truth.zernikes_nm = self._truth_vector(tel)
+            truth.intrinsic_nm = np.asarray(self.intrinsic_nm, dtype=np.float64)
+            truth.visit = int(visit)
+            truth.band = self.band
+            msgs = {k: image_msg(v.astype(np.float32), stamp_ns, encoding="32FC1",
+                                 frame_id=self.frame_id) for k, v in images.items()}
+            if self._closing:
+                return
+            for k, m in msgs.items():
+                self.pubs[k].publish(m)
+            self.pub_truth.publish(truth)
+            dt = time.monotonic() - t0
+            with self._lock:
+                self.stats["visits_rendered"] += 1
+                self.last_render_s = dt
+                self.last_status = f"visit {visit} published"
+            self.get_logger().info(f"visit {visit} published (rendered in {dt:.1f} s, "
+                                   f"|dof| {np.linalg.norm(dof):.4g})")
+        except Exception as exc:  # noqa: BLE001 - a failed visit must not kill the node
+            with self._lock:
+                self.stats["visits_failed"] += 1
+                self.last_status = f"visit {visit} failed: {type(exc).__name__}: {exc}"
+            if not self._closing:
+                self.get_logger().error(self.last_status)
+        finally:
+            with self._lock:
+                self._busy = False
+
+    # ------------------------------------------------------------------ diagnostics
+    def diagnostics(self):
+        with self._lock:
+            stats = dict(self.stats)
+            values = [("state", "rendering" if self._busy else "idle"),
+                      ("visit", self.visit), *stats.items(), ("band", self.band),
+                      ("wavelength_nm", f"{self.wavelength_nm:g}"),
+                      ("apply_corrections", self._param("apply_corrections")),
+                      ("actuator_noise", self._param("actuator_noise")),
+                      ("dof_norm", f"{np.linalg.norm(self._dof):.4g}"),
+                      ("last_render_s", f"{self.last_render_s:.2f}"),
+                      ("last_status", self.last_status)]
+            failed = stats["visits_failed"] > 0 and "failed" in self.last_status
+        values += self.ignored.key_values()
+        if failed:
+            level, message = WARN, self.last_status
+        elif self.ignored.recent(10.0):
+            level, message = WARN, f"recently ignored a correction: {self.ignored.last_message}"
+        else:
+            level, message = OK, "rendering" if values[0][1] == "rendering" else "idle"
+        return diagnostic_status(f"{self.get_name()}: camera simulator", level, message,
+                                 values, hardware_id="aos_camera_sim")
+
+    def publish_diagnostics(self) -> None:
+        try:
+            self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
+                                                    [self.diagnostics()]))
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"diagnostics failed: {exc}")
+
+    def destroy_node(self) -> None:
+        with self._lock:
+            self._closing = True
+            th = self._thread
+        if th is not None and th.is_alive():
+            th.join(timeout=1.0)  # a donut in progress finishes on its own (daemon thread)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """``camera_sim_node [--ros-args ...]``: run this node alone (config/params.yaml)."""
+    from cwfs_ros.launch import run_node_main
+
+    return run_node_main(NODE_NAME, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
