@@ -169,6 +169,12 @@ class PairGeometry:
         return out.reshape(self.shape)
 
 
+def _disk(radius: int) -> np.ndarray:
+    """Boolean disk structuring element of the given radius in grid samples."""
+    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    return xx * xx + yy * yy <= radius * radius
+
+
 def _kappa(m: ImageMapping, mask: np.ndarray) -> float:
     """Image contrast per unit Laplacian, ``C tr(A^-1) / 2`` averaged over the pupil."""
     tr_inv = (m.jxx + m.jyy) / m.det
@@ -202,10 +208,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     if not (grid_in & grid_ex).any():
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
-    rad = algo.boundary_px * algo.oversample
-    yy, xx = np.mgrid[-rad:rad + 1, -rad:rad + 1]
-    disk = xx * xx + yy * yy <= rad * rad
-    region2d = binary_dilation((grid_in | grid_ex).reshape(n, n), structure=disk)
+    region2d = binary_dilation((grid_in | grid_ex).reshape(n, n),
+                               structure=_disk(algo.boundary_px * algo.oversample))
     region = np.flatnonzero(region2d.ravel() & np.isin(np.arange(n * n), cand))
     pos = np.searchsorted(cand, region)
 
@@ -227,10 +231,10 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     only_one = np.zeros(n * n, bool)
     only_one[region] = mask_in ^ mask_ex
     guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
-    gy_, gx_ = np.mgrid[-guard:guard + 1, -guard:guard + 1]
-    near = binary_dilation(only_one.reshape(n, n), structure=gx_**2 + gy_**2 <= guard**2)
+    near = binary_dilation(only_one.reshape(n, n), structure=_disk(guard))
     weight = np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
     basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration, dtype=np.float32)
+    kappa = _kappa(m_in, common) - _kappa(m_ex, common)
     if algo.solver == "exp":
         solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)
     elif algo.solver == "fft":
@@ -238,8 +242,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     else:
         solver = LeastSquares((n, n), spacing, region, basis, common,
                               algo.edge_sigma_px * algo.oversample, mappings=(m_in, m_ex),
-                              kappa=_kappa(m_in, common) - _kappa(m_ex, common))
-    kappa = _kappa(m_in, common) - _kappa(m_ex, common)
+                              kappa=kappa)
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))
     intrinsic = design_zernikes_nm(inst, band, wavelength_nm, mid, algo.jmax)

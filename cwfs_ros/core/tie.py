@@ -50,8 +50,8 @@ class SeriesExpansion:
     def solve(self, d_intensity: np.ndarray, kappa: float) -> np.ndarray:
         """Residual wavefront Z1..Z_jmax (nm) from ``I_intra - I_extra`` on the points.
 
-        ``F_j = sum(S Z_j)`` with ``S = -dI / kappa`` carries the edge term, so by eq. (16)
-        ``sum_i M_ji W_i = -F_j`` with the sign of the Laplacian convention used here.
+        ``F_j = -sum(S Z_j) = sum(dI Z_j) / kappa`` (``S = -dI / kappa`` carries the edge
+        term), and by eq. (16) ``sum_i M_ji W_i = F_j``.
         """
         f = (self._z @ d_intensity.astype(self._z.dtype)).astype(float) / kappa
         out = np.zeros(self.jmax)

@@ -37,6 +37,7 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.visits import CORNERS
+from cwfs_ros.sim.telescope import BANDS
 
 from .common import (
     DIAGNOSTICS_QOS,
@@ -64,19 +65,13 @@ CORRECTION_TOPIC = "aos/ofc/dof_correction"
 # Per-unit-scale sigma of the random rigid-body perturbation of DoF 0..9
 # (M2 and camera hexapods: dz, dx, dy [um], rx, ry [deg]).
 RIGID_SCALE = np.array([8.0, 150.0, 150.0, 0.005, 0.005, 8.0, 150.0, 150.0, 0.005, 0.005])
-_FALLBACK_WAVELENGTH_NM = {"u": 365.0, "g": 480.0, "r": 622.0, "i": 754.0, "z": 869.0,
-                           "y": 971.0}
-_BANDS = tuple(_FALLBACK_WAVELENGTH_NM)
 
 
 def band_wavelength_nm(band: str) -> float:
-    """Effective wavelength of ``band`` (config/instruments/lsst.yaml, as ts_wep uses)."""
-    try:
-        from cwfs_ros.core.instrument import load_instrument
+    """Effective wavelength of ``band`` from config/instruments/lsst.yaml (as ts_wep uses)."""
+    from cwfs_ros.core.instrument import load_instrument
 
-        return float(load_instrument("lsst").wavelength_nm(band))
-    except Exception:  # noqa: BLE001 - the table below is the same data
-        return _FALLBACK_WAVELENGTH_NM[band]
+    return float(load_instrument("lsst").wavelength_nm(band))
 
 
 class CameraSimNode(Node):
@@ -88,8 +83,8 @@ class CameraSimNode(Node):
         self._declare_parameters()
         p = self._param
         self.band = str(p("band"))
-        if self.band not in _BANDS:
-            raise ValueError(f"band must be one of {_BANDS}, got {self.band!r}")
+        if self.band not in BANDS:
+            raise ValueError(f"band must be one of {BANDS}, got {self.band!r}")
         wl = float(p("wavelength_nm"))
         self.wavelength_nm = wl if wl > 0 else band_wavelength_nm(self.band)
         self.frame_id = str(p("frame_id"))
