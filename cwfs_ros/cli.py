@@ -212,14 +212,133 @@ def _run_estimate(args: argparse.Namespace) -> int:
 def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "demo",
-        help="estimate the wavefront of a ray-traced, perturbed LSST and compare with truth",
+        help="run the closed active-optics loop on the simulated telescope (the main job)",
+        description=(
+            "Run the closed loop headless: camera_sim_node ray-traces the corner donuts of a "
+            "perturbed LSST (batoid), wavefront_node estimates the wavefront, ofc_node "
+            "computes the 50-DoF correction and the camera applies it, visit after visit "
+            "(the graph of `cwfs-ros bringup --sim`, over real DDS inside this process). "
+            "Writes a report (PNG, HTML, CSV, JSON) and prints where it is."
+        ),
+    )
+    p.add_argument("--visits", type=_positive_int, default=8,
+                   help="visits to run (default: %(default)s)")
+    p.add_argument("--perturbation", choices=("rigid", "bending", "mixed"), default="rigid",
+                   help="what is perturbed at the start: the M2 and camera hexapods, the "
+                        "mirrors' bending modes, or both (default: %(default)s)")
+    p.add_argument("--wavefront-error", type=_finite_float, default=600.0, metavar="NM",
+                   help="initial wavefront error, mean over corners of sqrt(sum Z4..Z22^2) "
+                        "(default: %(default)s)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the random perturbation (default: %(default)s)")
+    p.add_argument("--photons", type=_finite_float, default=1e6,
+                   help="photons per donut (default: %(default)g)")
+    p.add_argument("--render-seed", type=int, default=7,
+                   help="seed of the image noise and donut offsets (default: %(default)s)")
+    p.add_argument("--params", action="append", default=[], metavar="FILE",
+                   help="ROS parameter YAML overlaid on config/params.yaml and "
+                        "config/sim.yaml (repeatable)")
+    p.add_argument("--out", type=Path, default=Path("out") / "demo",
+                   help="report directory (default: %(default)s)")
+    p.add_argument("--visible", action="store_true",
+                   help="let other processes on the DDS domain see the graph (e.g. to record "
+                        "it with `cwfs-ros bag record`); off by default so that simulated "
+                        "corrections never reach real actuators")
+    p.add_argument("--domain-id", type=int, metavar="N",
+                   help="DDS domain with --visible (default: ROS_DOMAIN_ID or 0)")
+    p.add_argument("--check", action="store_true",
+                   help="exit 1 unless the wavefront error falls at least 5x within 5 "
+                        "corrections and every correction was valid")
+    p.add_argument("--verbose", action="store_true", help="show the nodes' INFO log")
+    p.set_defaults(func=_run_demo)
+    return p
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .demo import LoopConfig, LoopError, run_closed_loop, write_report
+    from .sim.perturbation import random_perturbation
+
+    if not args.wavefront_error > 0:
+        raise CliError(f"--wavefront-error must be > 0 nm, got {args.wavefront_error:g}")
+    if not args.photons >= 1e3:
+        raise CliError(f"--photons must be >= 1000, got {args.photons:g}")
+    if args.domain_id is not None and not 0 <= args.domain_id <= 232:
+        raise CliError(f"--domain-id must be in 0..232, got {args.domain_id}")
+    for f in args.params:
+        if not Path(f).is_file():
+            raise CliError(f"--params {f}: no such file")
+    args.out.mkdir(parents=True, exist_ok=True)
+    dof = random_perturbation(args.perturbation, args.seed, args.wavefront_error)
+    print(f"cwfs-ros demo: {args.perturbation} perturbation (seed {args.seed}) of "
+          f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
+          f"{args.photons:g} photons per donut"
+          + ("" if args.visible else "; DDS discovery off (this process only)"), flush=True)
+    from .paths import config_dir
+
+    config = LoopConfig(
+        visits=args.visits, initial_dof=dof, n_photons=args.photons,
+        render_seed=args.render_seed,
+        params_files=[config_dir() / "sim.yaml", *args.params], visible=args.visible,
+        domain_id=args.domain_id,
+        ros_args=() if args.verbose else ("--log-level", "warn"))
+    header = (f"{'visit':>5}  {'true WFE':>9}  {'measured':>9}  {'est. err':>8}  "
+              f"{'correction':>10}  {'render':>7}  {'estimate':>8}  {'solve':>6}")
+    bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
+
+    def on_visit(r: Any) -> None:
+        import numpy as np
+
+        if r.visit == 1:
+            tqdm.write(header + "\n" + f"{'':>5}  {'(nm)':>9}  {'(nm)':>9}  {'(nm rms)':>8}"
+                       f"  {'':>10}  {'(s)':>7}  {'(ms)':>8}  {'(ms)':>6}")
+        tqdm.write(f"{r.visit:>5}  {r.true_error_nm:>9.1f}  {r.estimated_error_nm:>9.1f}  "
+                   f"{float(np.nanmedian(r.estimate_rms_error_nm)):>8.1f}  "
+                   f"{'valid' if r.correction_valid else 'REFUSED':>10}  {r.render_s:>7.1f}  "
+                   f"{1e3 * r.estimate_s:>8.0f}  {1e3 * r.solve_s:>6.0f}")
+        if not r.correction_valid:
+            tqdm.write(f"       correction refused: {r.correction_status}")
+        bar.update(1)
+        bar.set_postfix_str(f"WFE {r.true_error_nm:.0f} nm")
+
+    try:
+        run = run_closed_loop(config, workdir=args.out, on_visit=on_visit,
+                              on_status=lambda m: tqdm.write(m))
+    except LoopError as exc:
+        raise CliError(str(exc)) from None
+    finally:
+        bar.close()
+    paths = write_report(run, args.out)
+    e = run.true_error_nm
+    factor = run.reduction(5)
+    all_valid = all(r.correction_valid for r in run.records)
+    print(f"wavefront error {e[0]:.0f} nm -> {e[-1]:.0f} nm over {len(e)} visits "
+          f"(x{factor:.1f} within 5 corrections; start-up {run.startup_s:.1f} s, "
+          f"total {run.wall_s:.0f} s)")
+    print(f"report: {paths['html'].resolve()}")
+    print(f"figure: {paths['png'].resolve()}")
+    if args.check:
+        ok = factor >= 5.0 and all_valid
+        print(f"check: {'PASS' if ok else 'FAIL'} (needs x5 within 5 corrections and every "
+              f"correction valid: x{factor:.1f}, "
+              f"{sum(r.correction_valid for r in run.records)}/{len(run.records)} valid)")
+        return 0 if ok else 1
+    return 0
+
+
+@subcommand
+def _add_pair_demo(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "pair-demo",
+        help="estimate the wavefront of one ray-traced, perturbed LSST pair against truth",
         description=(
             "Perturb the batoid LSST model (M2 and camera hexapods), ray-trace an intra/extra "
             "donut pair photon by photon with noise, estimate the wavefront, compare it with "
             "the model's true Zernikes, and write a figure."
         ),
     )
-    p.add_argument("--out", type=Path, default=Path("out") / "demo",
+    p.add_argument("--out", type=Path, default=Path("out") / "pair_demo",
                    help="output directory (default: %(default)s)")
     p.add_argument("--field", nargs=2, type=_finite_float, default=(0.0, 0.0),
                    metavar=("X", "Y"), help="field angle in degrees (default: on axis)")
@@ -228,11 +347,11 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
     p.add_argument("--solver", choices=SOLVER_CHOICES, default="exp",
                    help="TIE solver (default: %(default)s)")
-    p.set_defaults(func=_run_demo)
+    p.set_defaults(func=_run_pair_demo)
     return p
 
 
-def _run_demo(args: argparse.Namespace) -> int:
+def _run_pair_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .core import estimate_wavefront

@@ -218,9 +218,15 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "--params-file, --log-level ...)")
 
 
+def sim_params_file() -> Path:
+    """config/sim.yaml: the simulated loop's settings, loaded after params.yaml with --sim."""
+    return config_dir() / "sim.yaml"
+
+
 def cmd_bringup(args: argparse.Namespace) -> int:
     names = list(BRINGUP_NODES) + ([SIM_NODE] if args.sim else [])
-    return run_nodes(names, params_files=args.params, ros_args=args.ros_args or [],
+    files = ([sim_params_file()] if args.sim else []) + list(args.params)
+    return run_nodes(names, params_files=files, ros_args=args.ros_args or [],
                      threads=args.threads)
 
 
@@ -237,7 +243,8 @@ def add_bringup_parser(subparsers) -> argparse.ArgumentParser:
                     "(like a launch file). Parameters: config/params.yaml, then --params "
                     "files, then --ros-args.")
     p.add_argument("--sim", action="store_true",
-                   help="also run camera_sim_node (cwfs_ros.nodes.camera_sim_node)")
+                   help="also run camera_sim_node (cwfs_ros.nodes.camera_sim_node), with "
+                        "config/sim.yaml over config/params.yaml")
     _add_common(p)
     p.set_defaults(func=cmd_bringup)
     return p

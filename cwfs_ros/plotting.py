@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_result"]
+__all__ = ["plot_closed_loop", "plot_result"]
 
 # Convergence panel: how many of the largest terms get a legend entry.
 _N_LABELLED = 6
@@ -184,5 +184,115 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
             f"{result.field_deg[1]:.3f}) deg")
     lines = ([title] if title else []) + [meta, status]
     fig.suptitle("\n".join(lines), fontsize=11)
+    fig.savefig(path, format="png")
+    return path
+
+
+def plot_closed_loop(run: Any, path: str | Path) -> Path:
+    """Write the closed-loop demo's figure (a :class:`cwfs_ros.demo.LoopRun`) as a PNG.
+
+    Rows: (a) the 8 donuts of the first and of the last visit kept; (b) per corner, the
+    estimated against the true Zernikes (design removed) of the first visit, with the last
+    visit's estimate and truth as lighter markers; (c) the wavefront error per visit (true
+    and estimated, log scale) and the telescope's DoF state per visit, each DoF group on
+    its own normalised scale.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .core.visits import CORNERS, NOLL, SIDES
+
+    path = Path(path)
+    recs = list(run.records)
+    kept = [r for r in recs if r.images]
+    fig = Figure(figsize=(16.0, 13.0), dpi=90, layout="constrained")
+    FigureCanvasAgg(fig)
+    outer = fig.add_gridspec(3, 1, height_ratios=[1.25, 1.0, 1.0])
+
+    # (a) donuts of the kept visits, one row each (at most two rows).
+    rows = kept[:1] + kept[-1:] if len(kept) > 1 else kept
+    top = outer[0].subgridspec(max(len(rows), 1), len(CORNERS) * len(SIDES))
+    for i, r in enumerate(rows):
+        for j, (c, s) in enumerate((c, s) for c in CORNERS for s in SIDES):
+            ax = fig.add_subplot(top[i, j])
+            label = f"visit {r.visit}: {c} {s}" if j == 0 else f"{c} {s}"
+            _show_donut(ax, r.images.get((c, s)), label)
+    if not rows:
+        ax = fig.add_subplot(top[0, 0])
+        ax.text(0.5, 0.5, "no donuts kept", transform=ax.transAxes)
+
+    # (b) Zernikes per corner: estimate vs truth, design removed.
+    mid = outer[1].subgridspec(1, len(CORNERS))
+    first, last = recs[0], recs[-1]
+    noll = np.asarray(NOLL)
+    n = len(noll)
+    w = 0.38
+    for k, c in enumerate(CORNERS):
+        ax = fig.add_subplot(mid[0, k])
+        sl = slice(k * n, (k + 1) * n)
+        for rec, alpha, tag in ((first, 1.0, f"visit {first.visit}"),
+                                (last, 0.45, f"visit {last.visit}")):
+            truth = rec.truth_nm[sl] - rec.intrinsic_nm[sl]
+            est = rec.estimate_nm[sl] - rec.intrinsic_nm[sl]
+            if rec is first:
+                ax.bar(noll - w / 2, truth, width=w, color="0.55", label=f"truth, {tag}")
+                ax.bar(noll + w / 2, est, width=w, color="C0", label=f"estimate, {tag}")
+            else:
+                ax.plot(noll, truth, "_", color="k", ms=9, alpha=alpha, label=f"truth, {tag}")
+                ax.plot(noll, est, ".", color="C3", ms=6, alpha=0.9, label=f"estimate, {tag}")
+        err = np.sqrt(np.nanmean((first.estimate_nm[sl] - first.truth_nm[sl]) ** 2))
+        ax.set_title(f"(b) {c}, design removed; visit {first.visit} error {err:.1f} nm rms",
+                     fontsize=9)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xticks(noll[::2])
+        ax.set_xlabel("Noll index")
+        if k == 0:
+            ax.set_ylabel("nm of wavefront")
+            ax.legend(fontsize=7)
+        ax.grid(axis="y", alpha=0.3)
+
+    # (c) convergence and DoF state.
+    bot = outer[2].subgridspec(1, 2, width_ratios=[1.0, 1.3])
+    ax = fig.add_subplot(bot[0, 0])
+    v = np.array([r.visit for r in recs])
+    true_e = np.array([r.true_error_nm for r in recs])
+    est_e = np.array([r.estimated_error_nm for r in recs])
+    est_err = np.array([float(np.nanmedian(r.estimate_rms_error_nm)) for r in recs])
+    ax.semilogy(v, true_e, "-o", color="k", label="true wavefront error")
+    ax.semilogy(v, est_e, "--s", color="C0", ms=4, label="measured by wavefront_node")
+    ax.semilogy(v, est_err * np.sqrt(n), ":^", color="C3", ms=4,
+                label="estimate error (same norm)")
+    bad = [r.visit for r in recs if not r.correction_valid]
+    if bad:
+        ax.plot(bad, true_e[np.isin(v, bad)], "x", color="r", ms=10,
+                label="correction refused")
+    ax.set_xlabel("visit")
+    ax.set_ylabel("mean over corners of sqrt(sum Z4..Z22^2) (nm)")
+    ax.set_title(f"(c) convergence: {true_e[0]:.0f} -> {true_e[-1]:.0f} nm", fontsize=10)
+    ax.set_xticks(v)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+
+    # DoF state in units of each DoF's range (config/ofc/dof.yaml), rms per group: how
+    # far each actuator group is from nominal, on one physical scale.
+    from .core.control import load_dof_spec
+
+    ax = fig.add_subplot(bot[0, 1])
+    state = np.array([r.dof_state for r in recs]) / load_dof_spec().range
+    groups = (("M2 hexapod", slice(0, 5)), ("camera hexapod", slice(5, 10)),
+              ("M1M3 bending modes", slice(10, 30)), ("M2 bending modes", slice(30, 50)))
+    for i, (name, sl) in enumerate(groups):
+        g = np.sqrt(np.mean(state[:, sl] ** 2, axis=1))
+        ax.semilogy(v, np.maximum(g, 1e-7), "-o", ms=4, color=f"C{i}", label=name)
+    ax.set_xlabel("visit")
+    ax.set_ylabel("rms of DoF state / DoF range")
+    ax.set_xticks(v)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title("telescope state per actuator group (0 = nominal)", fontsize=10)
+
+    fig.suptitle(
+        f"cwfs_ros closed loop: camera_sim_node -> wavefront_node -> ofc_node, "
+        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut", fontsize=12)
     fig.savefig(path, format="png")
     return path

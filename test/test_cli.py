@@ -157,9 +157,9 @@ def test_plot_result_without_iterations(tmp_path: Path) -> None:
     assert out == tmp_path / "empty.png" and out.stat().st_size > 0
 
 
-def test_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
-    """The README's main job: a perturbed LSST pair, its estimate against truth, a report."""
-    proc = run_cli("demo", "--out", tmp_path, "--photons", "4e5", "--seed", "2")
+def test_pair_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
+    """A perturbed LSST pair, its estimate against truth, a figure."""
+    proc = run_cli("pair-demo", "--out", tmp_path, "--photons", "4e5", "--seed", "2")
     assert proc.returncode == 0, proc.stderr
     png = tmp_path / "demo_estimate.png"
     assert f"report: {png.resolve()}" in proc.stdout
@@ -170,3 +170,31 @@ def test_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
     # Several hundred nm of wavefront, recovered to tens of nm at this photon count.
     assert float(rms_line.split()[2]) < 40.0
     assert np.sqrt(np.sum(saved["truth_nm"] ** 2)) > 150.0
+
+
+@pytest.mark.ros
+def test_demo_runs_the_closed_loop_and_writes_its_report(tmp_path: Path) -> None:
+    """The README's main job, small: 3 visits of the real graph, the report, the verdict."""
+    proc = run_cli("demo", "--out", tmp_path, "--visits", "3", "--photons", "2e5",
+                   "--wavefront-error", "500", timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    html = tmp_path / "report.html"
+    assert f"report: {html.resolve()}" in proc.stdout
+    assert (tmp_path / "closed_loop.png").stat().st_size > 50_000
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    e = summary["true_error_nm"]
+    assert len(e) == 3 and all(summary["corrections_valid"])
+    # The start is the asked-for 500 nm (scaled perturbation), and the loop closes on it.
+    assert abs(e[0] - 500.0) < 25.0, e
+    assert e[2] < e[0] / 3.0, e
+    rows = (tmp_path / "visits.csv").read_text().splitlines()
+    assert len(rows) == 4 and rows[0].startswith("visit,")
+    assert "<img src=\"closed_loop.png\"" in html.read_text()
+
+
+def test_demo_rejects_bad_arguments(tmp_path: Path) -> None:
+    proc = run_cli("demo", "--out", tmp_path, "--wavefront-error", "-3")
+    assert proc.returncode == 2
+    assert "--wavefront-error must be > 0" in proc.stderr
+    proc = run_cli("demo", "--out", tmp_path, "--params", tmp_path / "missing.yaml")
+    assert proc.returncode == 2 and "no such file" in proc.stderr

@@ -84,3 +84,30 @@ def test_node_classes_load_lazily():
     assert L.load_node_class("camera_sim_node").__name__ == "CameraSimNode"
     with pytest.raises(L.LaunchError, match="unknown node"):
         L.load_node_class("foo_node")
+
+
+def test_bringup_sim_loads_sim_yaml_before_the_users_files(monkeypatch):
+    seen = {}
+    monkeypatch.setattr(L, "run_nodes", lambda names, **kw: seen.update(names=names, **kw) or 0)
+    ap = argparse.ArgumentParser()
+    L.add_bringup_parser(ap.add_subparsers(dest="command"))
+    a = ap.parse_args(["bringup", "--sim", "--params", "u.yaml"])
+    assert a.func(a) == 0
+    assert seen["names"] == ["wavefront_node", "ofc_node", "camera_sim_node"]
+    assert seen["params_files"] == [L.sim_params_file(), "u.yaml"]
+    seen.clear()
+    a = ap.parse_args(["bringup"])
+    a.func(a)
+    assert seen["params_files"] == [] and "camera_sim_node" not in seen["names"]
+
+
+def test_sim_yaml_only_sets_parameters_the_nodes_declare():
+    """A misspelt key would be ignored silently by rcl; params.yaml lists every parameter."""
+    yaml = pytest.importorskip("yaml")
+    declared = yaml.safe_load(L.default_params_file().read_text())
+    sim = yaml.safe_load(L.sim_params_file().read_text())
+    assert sim, "config/sim.yaml is empty"
+    for node, body in sim.items():
+        assert node in declared
+        unknown = set(body["ros__parameters"]) - set(declared[node]["ros__parameters"])
+        assert not unknown, f"{node}: {unknown}"

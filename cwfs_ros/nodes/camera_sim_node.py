@@ -37,7 +37,9 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.visits import CORNERS
+from cwfs_ros.sim.perturbation import RIGID_SCALE
 from cwfs_ros.sim.telescope import BANDS
+from cwfs_ros.sim.visit import DonutSpec, make_render_pool, render_visit
 
 from .common import (
     DIAGNOSTICS_QOS,
@@ -62,9 +64,6 @@ SIDES = ("intra", "extra")
 IMAGE_TOPIC = "aos/wfs/{corner}/{side}/image"
 TRUTH_TOPIC = "aos/sim/truth"
 CORRECTION_TOPIC = "aos/ofc/dof_correction"
-# Per-unit-scale sigma of the random rigid-body perturbation of DoF 0..9
-# (M2 and camera hexapods: dz, dx, dy [um], rx, ry [deg]).
-RIGID_SCALE = np.array([8.0, 150.0, 150.0, 0.005, 0.005, 8.0, 150.0, 150.0, 0.005, 0.005])
 
 
 def band_wavelength_nm(band: str) -> float:
@@ -112,6 +111,7 @@ class CameraSimNode(Node):
         nominal = sim.perturbed_telescope(np.zeros(N_DOF), self.band)
         self.intrinsic_nm = self._truth_vector(nominal)
 
+        self._pool = make_render_pool(int(p("render_workers")))
         self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
                       "corrections_applied": 0, "corrections_ignored": 0}
         self.ignored = RejectionCounter()
@@ -175,6 +175,14 @@ class CameraSimNode(Node):
             "Random donut offset in each axis, uniform in +-offset_px_max [px].",
             fp_range=(0.0, 1000.0), **ro))
         d("npix", 160, describe("Stamp side [px].", int_range=(16, 4096), **ro))
+        d("seeing_fwhm_arcsec", 0.0, describe(
+            "Gaussian seeing blur FWHM [arcsec]; 0 = none.", fp_range=(0.0, 10.0), **ro))
+        d("read_noise_e", 0.0, describe(
+            "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
+        d("render_workers", 0, describe(
+            "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
+            "1 = in the node's render thread). The images do not depend on it.",
+            int_range=(0, 64), **ro))
         d("apply_corrections", True, describe(
             "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
         d("actuator_noise", 0.0, describe(
@@ -273,19 +281,24 @@ class CameraSimNode(Node):
             npix, n_photons = int(p("npix")), float(p("n_photons"))
             sky, off_max = float(p("sky_per_pixel")), float(p("offset_px_max"))
             tel = self._sim.perturbed_telescope(dof, self.band)
-            images = {}
+            # Offsets and per-donut seeds are drawn here, in a fixed order, so the images do
+            # not depend on how many render workers there are.
+            specs = []
             for c in CORNERS:
                 g = self.geometry[c]
                 for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
                                         ("extra", g.extra_field_deg, g.extra_offset_mm)):
-                    if self._closing:
-                        return
-                    offset = tuple(self._rng.uniform(-off_max, off_max, 2)) if off_max > 0 \
-                        else (0.0, 0.0)
-                    images[(c, side)] = self._sim.render_donut(
-                        tel, field, dz, wavelength_nm=self.wavelength_nm, npix=npix,
-                        n_photons=n_photons, sky_per_pixel=sky, offset_px=offset,
-                        rng=self._rng, poisson=True, subtract_sky=True)
+                    offset = (tuple(float(x) for x in self._rng.uniform(-off_max, off_max, 2))
+                              if off_max > 0 else (0.0, 0.0))
+                    specs.append(DonutSpec((c, side), tuple(field), float(dz), offset,
+                                           int(self._rng.integers(2**62))))
+            if self._closing:
+                return
+            images = render_visit(tel, specs, wavelength_nm=self.wavelength_nm, npix=npix,
+                                  n_photons=n_photons, sky_per_pixel=sky,
+                                  seeing_fwhm_arcsec=float(p("seeing_fwhm_arcsec")),
+                                  read_noise_e=float(p("read_noise_e")),
+                                  executor=self._pool)
             truth = SimTruth()
             truth.header.stamp = ns_to_stamp(stamp_ns)
             truth.header.frame_id = self.frame_id
@@ -354,6 +367,8 @@ class CameraSimNode(Node):
             th = self._thread
         if th is not None and th.is_alive():
             th.join(timeout=1.0)  # a donut in progress finishes on its own (daemon thread)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
         super().destroy_node()
 
 
