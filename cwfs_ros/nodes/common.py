@@ -8,9 +8,12 @@ QoS, chosen on purpose
   the subscriber absorb a burst of up to 10 visits (a bag replayed fast, a stalled executor)
   without loss, while KEEP_LAST (not KEEP_ALL) bounds memory and back-pressure if the node
   falls behind for good: the oldest images are then dropped and reported as unpaired. A
-  RELIABLE subscription still matches a BEST_EFFORT camera publisher (the images then simply
-  are best-effort). Large bursts need the FastDDS profile of ``config/fastdds_profile.xml``
-  (16 MiB shared-memory segment), which the entry points load.
+  RELIABLE subscription does **not** match a BEST_EFFORT publisher (DDS: the offered
+  reliability must be at least the requested one), so a camera driver publishing with
+  ``sensor_data`` QoS would never be heard: the wavefront node reports such a publisher on
+  /diagnostics (:class:`QosEventMonitor`) and its ``image_reliability`` parameter can be set
+  to ``best_effort`` to match it. Large bursts need the FastDDS profile of
+  ``config/fastdds_profile.xml`` (16 MiB shared-memory segment), which the entry points load.
 * Outputs (:data:`OUTPUT_QOS`): RELIABLE, KEEP_LAST 10, VOLATILE: every visit's result must
   reach the controller and recorders; stale corrections must not be replayed to a late joiner
   (a DoF correction is only meaningful for the telescope state it was computed against).
@@ -39,6 +42,8 @@ __all__ = [
     "DIAGNOSTICS_QOS",
     "IMAGE_QOS",
     "OUTPUT_QOS",
+    "QosEventMonitor",
+    "image_qos",
     "RejectionCounter",
     "describe",
     "diagnostic_status",
@@ -55,6 +60,18 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10)
+RELIABILITIES = ("reliable", "best_effort")
+
+
+def image_qos(reliability: str = "reliable") -> QoSProfile:
+    """:data:`IMAGE_QOS` with the given reliability (``reliable`` or ``best_effort``)."""
+    if reliability not in RELIABILITIES:
+        raise ValueError(f"image reliability must be one of {RELIABILITIES}, "
+                         f"got {reliability!r}")
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=IMAGE_QOS.depth,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliability == "reliable"
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=DurabilityPolicy.VOLATILE)
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -135,3 +152,80 @@ def diagnostics_array(stamp: Time, statuses: Sequence[DiagnosticStatus]) -> Diag
     arr.header.stamp = stamp
     arr.status = list(statuses)
     return arr
+
+
+class QosEventMonitor:
+    """Counts and describes QoS events of a node's subscriptions and publishers.
+
+    A QoS mismatch in DDS is silent: the two endpoints simply never connect. A message lost
+    by the middleware (a reader that fell behind a best-effort writer) is silent too. This
+    turns both into log lines and /diagnostics entries, so that a camera or controller that
+    cannot be heard is reported instead of waited for.
+
+    Use :meth:`subscription_callbacks` / :meth:`publisher_callbacks` as the
+    ``event_callbacks`` argument of ``create_subscription`` / ``create_publisher``.
+    """
+
+    def __init__(self, logger) -> None:
+        self._logger = logger
+        self._lock = threading.Lock()
+        self.incompatible: Counter[str] = Counter()
+        self.lost: Counter[str] = Counter()
+        self.last_problem = ""
+        self._last_t = -1e9
+
+    def _note(self, text: str) -> None:
+        with self._lock:
+            self.last_problem = text
+            self._last_t = time.monotonic()
+        self._logger.error(text)
+
+    def subscription_callbacks(self, topic: str):
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        def incompatible(event) -> None:
+            with self._lock:
+                self.incompatible[topic] += 1
+            self._note(f"a publisher on {topic} offers a QoS incompatible with this "
+                       f"subscription (policy {_policy_name(event.last_policy_kind)}): no "
+                       "messages will arrive from it")
+
+        def lost(event) -> None:
+            with self._lock:
+                self.lost[topic] += int(event.total_count_change)
+            self._note(f"{event.total_count_change} message(s) lost on {topic} "
+                       f"({event.total_count} in all)")
+
+        return SubscriptionEventCallbacks(incompatible_qos=incompatible, message_lost=lost)
+
+    def publisher_callbacks(self, topic: str):
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        def incompatible(event) -> None:
+            with self._lock:
+                self.incompatible[topic] += 1
+            self._note(f"a subscriber on {topic} requests a QoS this publisher does not "
+                       f"offer (policy {_policy_name(event.last_policy_kind)}): it will "
+                       "receive nothing")
+
+        return PublisherEventCallbacks(incompatible_qos=incompatible)
+
+    def problem(self) -> str | None:
+        """The latest problem if any topic has an incompatible peer, else ``None``."""
+        with self._lock:
+            return self.last_problem if self.incompatible else None
+
+    def recent(self, window_s: float) -> bool:
+        with self._lock:
+            return time.monotonic() - self._last_t < window_s
+
+    def key_values(self) -> list[tuple[str, str]]:
+        with self._lock:
+            out = [(f"qos_incompatible.{t}", str(n)) for t, n in sorted(self.incompatible.items())]
+            out += [(f"messages_lost.{t}", str(n)) for t, n in sorted(self.lost.items())]
+        return out
+
+
+def _policy_name(kind) -> str:
+    name = getattr(kind, "name", str(kind))
+    return name.replace("RMW_QOS_POLICY_", "").lower()

@@ -3,7 +3,8 @@
 Topics (relative names; in the root namespace they are the ones below)
 ---------------------------------------------------------------------
 in   ``/aos/wfs/<corner>/<side>/image``  sensor_msgs/Image, side ``intra`` | ``extra``, one
-     subscription per served corner and side (:data:`IMAGE_QOS`). ``header.stamp`` is the
+     subscription per served corner and side (:func:`~.common.image_qos`, reliable unless
+     ``image_reliability`` says best_effort). ``header.stamp`` is the
      exposure time; the intra and extra images of a visit carry equal stamps.
 out  ``/aos/wfs/<corner>/wavefront``     cwfs_msgs/CornerWavefront, as soon as that corner's
      pair is estimated (valid=false with a status naming the problem otherwise).
@@ -59,14 +60,15 @@ from cwfs_ros.core.visits import (
 from .common import (
     DIAGNOSTICS_QOS,
     ERROR,
-    IMAGE_QOS,
     OK,
     OUTPUT_QOS,
     WARN,
+    QosEventMonitor,
     RejectionCounter,
     describe,
     diagnostic_status,
     diagnostics_array,
+    image_qos,
     result,
 )
 from .convert import (
@@ -133,6 +135,7 @@ class WavefrontNode(Node):
         self.last_compute_ms: dict[str, float] = {}
         self.last_status: dict[str, str] = {}
 
+        img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
         # Worker processes, warmed up in the background.
         self.pool = CornerPool(self.corners, p("workers"))
         self._warm: dict[str, dict] = {}
@@ -148,11 +151,14 @@ class WavefrontNode(Node):
                            if self.assemble else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         self._subs = []
+        self.qos_events = QosEventMonitor(self.get_logger())
         for c in self.corners:
             for s in SIDES:
+                topic = image_topic(c, s)
                 self._subs.append(self.create_subscription(
-                    Image, image_topic(c, s), self._image_callback(c, s), IMAGE_QOS,
-                    callback_group=self._cb_images))
+                    Image, topic, self._image_callback(c, s), img_qos,
+                    callback_group=self._cb_images,
+                    event_callbacks=self.qos_events.subscription_callbacks(topic)))
         if self.assemble:
             for c in CORNERS:
                 if c not in self.corners:
@@ -210,6 +216,11 @@ class WavefrontNode(Node):
             "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
             read_only=True))
         d("frame_id", "focal_plane", describe("frame_id of the published messages."))
+        d("image_reliability", "reliable", describe(
+            "QoS reliability of the image subscriptions: reliable (a lost image loses the "
+            "corner's visit) or best_effort (needed to hear a camera that publishes with "
+            "sensor_data QoS: a reliable subscription never matches a best-effort "
+            "publisher).", constraints="reliable | best_effort", read_only=True))
         d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].",
                                                 read_only=True, fp_range=(0.05, 60.0)))
         for c in CORNERS:
@@ -445,6 +456,9 @@ class WavefrontNode(Node):
         elif len(warm) < len(self.corners):
             level, state = WARN, "warming"
             message = f"warming up workers ({len(warm)}/{len(self.corners)} corners ready)"
+        elif self.qos_events.problem() is not None:
+            level, state = ERROR, "ready"
+            message = f"QoS: {self.qos_events.problem()}"
         elif self.rejected.recent(10.0):
             level, state = WARN, "ready"
             message = f"ready; recently rejected input: {self.rejected.last_message}"
@@ -460,6 +474,7 @@ class WavefrontNode(Node):
         values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
                    sorted(warm.items())]
         values += self.rejected.key_values()
+        values += self.qos_events.key_values()
         return diagnostic_status(f"{self.get_name()}: wavefront estimation", level, message,
                                  values, hardware_id="cwfs_corner_sensors")
 
