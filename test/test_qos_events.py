@@ -76,7 +76,7 @@ def test_best_effort_camera_is_reported_as_incompatible(ros_context):
         assert int(kv["qos_incompatible.aos/wfs/R00/extra/image"]) >= 1
         # ... and indeed nothing gets through.
         d = synthetic_donut(160, 60.0, 0.61)
-        for s, p in pubs.items():
+        for p in pubs.values():
             p.publish(image_msg(d, 5 * SEC))
         with pytest.raises(AssertionError, match="timed out"):
             wait_for(lambda: bool(got), 2.0, "a corner result")

@@ -15,6 +15,13 @@ Split sensor and off-axis (§3.3-3.4): each image has its own mapping at its own
 angle, which removes distortion and that field's design aberrations; the vignetting masks of
 the two images are combined into the common pupil mask; the design wavefront at the
 mid-point field is added back so that the result is the total wavefront there.
+
+Pupil registration (beyond the paper): the images are first aligned by flux centroid, whose
+model depends on the vignetting model; every outer iteration then measures the shift of the
+compensated pupils on the primary's outer rim (the stop, where the model is exact) away from
+any vignetting edge, and moves both images to undo it.  A vignetting model a pixel off (the
+FAM edge fields) otherwise shifts both pupils against the mapping, and the design wavefront,
+sampled at shifted pupil points, reads as tens of nm of astigmatism and coma.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from typing import Any
 import numpy as np
 import yaml
 from scipy import fft as sfft
+from scipy.linalg import solve_triangular
 from scipy.ndimage import binary_dilation, gaussian_filter
 
 from ..paths import config_dir
@@ -59,6 +67,13 @@ class AlgorithmConfig:
     inner_iterations: int = 6
     edge_sigma_px: float = 1.0
     smooth_sigma_px: float = 1.0
+    # Basis in which the outer loop truncates the feedback to the schedule's Noll index:
+    # "zernike" (the paper) or "orthonormal" (the annular Zernikes Gram-Schmidt
+    # orthonormalised on the common vignetted pupil, §3.3; see README, Accuracy).
+    feedback_basis: str = "zernike"
+    # Register the compensated pupils on the primary's outer rim at every outer iteration
+    # (corrects centroid alignment biased by vignetting-model errors; README, Accuracy).
+    register_rim: bool = True
 
     def __post_init__(self) -> None:
         problems = []
@@ -84,6 +99,9 @@ class AlgorithmConfig:
         if not isinstance(self.inner_iterations, int) or self.inner_iterations < 1:
             problems.append(f"inner_iterations must be an integer >= 1, got "
                             f"{self.inner_iterations!r}")
+        if self.feedback_basis not in ("zernike", "orthonormal"):
+            problems.append(f"feedback_basis must be 'zernike' or 'orthonormal', got "
+                            f"{self.feedback_basis!r}")
         if problems:
             raise ConfigError("algorithm: " + "; ".join(problems))
 
@@ -137,6 +155,16 @@ class PairGeometry:
         mapping_intra, mapping_extra: unperturbed mappings at each star's field.
         kappa: ``kappa_intra - kappa_extra`` (see :mod:`.tie`), per nm of Laplacian.
         intrinsic_nm: design wavefront Z1..Z_jmax (nm) at the mid-point field.
+        gram_common: Gram matrix of Z1..Z_jmax over the common pupil (§3.3: the identity
+            on a full annulus, not on a vignetted pupil).
+        feedback_l: Cholesky factor L of ``gram_common`` (``Z = L U`` with U orthonormal on
+            the common pupil) when the feedback is truncated in that basis, else None.
+        rim_index, rim_pinv: computation points of the pupil-registration band on the
+            primary's outer rim where neither image is vignetted, and the (3, n) least-squares
+            operator giving (level, level * shift_x, level * shift_y) of the mean
+            compensated image there (see :func:`_rim_registration`); None if too few.
+        jac_mean_intra, jac_mean_extra: mean mapping Jacobian (px per pupil unit), which
+            turns a pupil shift into the image shift that undoes it.
     """
 
     shape: tuple[int, int]
@@ -161,6 +189,12 @@ class PairGeometry:
     mean_gradient_intra: np.ndarray
     mean_gradient_extra: np.ndarray
     build_time_s: float = 0.0
+    gram_common: np.ndarray | None = None
+    feedback_l: np.ndarray | None = None
+    rim_index: np.ndarray | None = None
+    rim_pinv: np.ndarray | None = None
+    jac_mean_intra: np.ndarray | None = None
+    jac_mean_extra: np.ndarray | None = None
 
     def pupil_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
         """Scatter values on the computation points into an (n, n) image for display."""
@@ -179,6 +213,51 @@ def _kappa(m: ImageMapping, mask: np.ndarray) -> float:
     """Image contrast per unit Laplacian, ``C tr(A^-1) / 2`` averaged over the pupil."""
     tr_inv = (m.jxx + m.jyy) / m.det
     return float(m.c_px_per_nm * np.mean(tr_inv[mask]) / 2.0)
+
+
+def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray,
+                      x: np.ndarray, y: np.ndarray, annulus: np.ndarray, mask_in: np.ndarray,
+                      mask_ex: np.ndarray, r_d: float, algo: AlgorithmConfig
+                      ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Points and operator registering the compensated images on the primary's outer rim.
+
+    The images are aligned by their flux centroids, whose model depends on the vignetting
+    model: where the real vignetting edges differ from the model's by a pixel (the FAM edge
+    fields, README), the centroids put both compensated pupils ~1.5 px off the mapping, and
+    the design wavefront, sampled at shifted pupil points, reads as tens of nm of
+    astigmatism and coma.  The primary's outer edge is the pupil stop, known exactly; on
+    the arcs where no vignetting edge is near, the mean of the two compensated images,
+    in which the wavefront's edge signals cancel (they move the intra and extra edges
+    oppositely, §2.1), is fitted as ``L * M_b(p - s)`` (``M_b``: the mask blurred like the
+    images), linearised in the pupil shift s.
+    """
+    n = shape[0]
+    band = 4.0 + 2.0 * algo.smooth_sigma_px  # px either side of the rim
+    r = np.hypot(x, y)
+    untrusted = np.zeros(n * n, bool)
+    untrusted[region] = (annulus ^ mask_in) | (annulus ^ mask_ex)
+    untrusted = binary_dilation(untrusted.reshape(n, n),
+                                structure=_disk(int(np.ceil(2 * band * algo.oversample))))
+    sel = (np.abs(r - 1.0) <= band / r_d) & ~untrusted.ravel()[region]
+    if sel.sum() < 200:
+        return None, None
+    sigma = np.hypot(algo.smooth_sigma_px, np.sqrt(1.0 / 12.0)) * algo.oversample
+    grid = np.zeros(n * n)
+    grid[region] = 0.5 * (mask_in.astype(float) + mask_ex.astype(float))
+    mb = gaussian_filter(grid.reshape(n, n), sigma)
+    gy, gx = np.gradient(mb, spacing)
+    idx = region[sel]
+    design = np.stack([mb.ravel()[idx], -gx.ravel()[idx], -gy.ravel()[idx]], axis=1)
+    normal = design.T @ design
+    if np.linalg.cond(normal) > 1e8:
+        return None, None
+    return np.flatnonzero(sel), np.linalg.solve(normal, design.T).astype(np.float32)
+
+
+def _mean_jacobian(m: ImageMapping) -> np.ndarray:
+    t = m.transmitted
+    return np.array([[m.jxx[t].mean(), m.jxy[t].mean()],
+                     [m.jyx[t].mean(), m.jyy[t].mean()]], dtype=float)
 
 
 @lru_cache(maxsize=32)
@@ -251,7 +330,17 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
                                m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
                       for m in (m_in, m_ex)))
-    for arr in (x, y, mask_in, mask_ex, common, weight, region):
+    zc = basis.z[:, common].astype(float)
+    gram = zc @ zc.T / max(int(common.sum()), 1)
+    feedback_l = np.linalg.cholesky(gram) if algo.feedback_basis == "orthonormal" else None
+    r_pupil = np.hypot(x, y)
+    annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
+    rim_index, rim_pinv = (None, None)
+    if algo.register_rim:
+        rim_index, rim_pinv = _rim_registration((n, n), spacing, region, x, y, annulus,
+                                                mask_in, mask_ex, r_d * algo.oversample,
+                                                algo)
+    for arr in (x, y, mask_in, mask_ex, common, weight, region, gram):
         arr.setflags(write=False)
     def mean_gradient(mask: np.ndarray) -> np.ndarray:
         """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
@@ -265,7 +354,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     return PairGeometry((n, n), spacing, region, x, y, mask_in, mask_ex, common, weight,
                         m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
                         centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
-                        mean_gradient(mask_ex), time.perf_counter() - t0)
+                        mean_gradient(mask_ex), time.perf_counter() - t0, gram, feedback_l,
+                        rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex))
 
 
 # -- result -------------------------------------------------------------------------------
@@ -363,7 +453,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         solver: ``"exp"`` (series expansion) or ``"fft"`` (iterative FFT).
         **algorithm: overrides of ``config/algorithm.yaml`` (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
-            tolerance_nm, inner_iterations).
+            tolerance_nm, inner_iterations, register_rim, feedback_basis).
 
     Returns:
         A :class:`WavefrontResult`; ``.zernikes_nm`` holds Z4..Z22 in nm.
@@ -439,6 +529,17 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             caustic = True
             break
         last = (c_in.intensity, c_ex.intensity)
+        shift_px = 0.0
+        if geom.rim_pinv is not None:
+            # Pupil registration on the rim (see _rim_registration), applied from the next
+            # iteration on: move each image by the mapping's Jacobian times the pupil shift.
+            rim = 0.5 * (c_in.intensity[geom.rim_index] + c_ex.intensity[geom.rim_index])
+            level, ax, ay = (geom.rim_pinv @ rim).astype(float)
+            if level > 0.2:
+                shift = np.array([ax, ay]) / level
+                base_in = base_in + geom.jac_mean_intra @ shift
+                base_ex = base_ex + geom.jac_mean_extra @ shift
+                shift_px = float(np.abs(geom.jac_mean_intra @ shift).max())
         d_i = (c_in.intensity - c_ex.intensity) * geom.weight
         w_res = geom.solver.solve(d_i, geom.kappa)
         w_res[:3] = 0.0  # piston has no signal; tip/tilt is taken out by the alignment
@@ -446,10 +547,18 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         history.append(estimate.copy())
         rms = float(np.sqrt(np.mean(w_res[3:] ** 2)))
         res_rms.append(rms)
-        if j_stage >= jmax and rms < algo.tolerance_nm:
+        if j_stage >= jmax and rms < algo.tolerance_nm and shift_px < 0.01:
             converged = True
             break
-        w_comp = w_comp + algo.feedback_gain * np.where(idx <= j_stage, w_res, 0.0)
+        if geom.feedback_l is None:
+            step = np.where(idx <= j_stage, w_res, 0.0)
+        else:
+            # Truncate in the basis orthonormal on the vignetted pupil (u = L^T w); L^T is
+            # upper triangular, so the step stays within Z1..Z_{j_stage}.
+            u = geom.feedback_l.T @ w_res
+            u[idx > j_stage] = 0.0
+            step = solve_triangular(geom.feedback_l.T, u, lower=False)
+        w_comp = w_comp + algo.feedback_gain * step
         w_comp[:3] = 0.0
     if not history:
         # Caustic already at the first compensation: nothing trustworthy was estimated.

@@ -19,7 +19,7 @@ from .errors import ConfigError
 
 __all__ = ["Instrument", "load_instrument", "available_instruments", "MAPPINGS"]
 
-MAPPINGS = ("paraxial", "fastbeam", "batoid")
+MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
 
 
 @dataclass(frozen=True)
@@ -34,9 +34,14 @@ class Instrument:
         defocal_offset_mm: |detector offset| l of the intra/extra images from focus.
         pixel_size_um: detector pixel pitch.
         stamp_size_px: default stamp side for rendering and cropping.
-        mapping: pupil-to-image model: ``paraxial`` (eqs. 9-10), ``fastbeam`` (§3.2) or
-            ``batoid`` (ray-traced, any field; §3.3).
+        mapping: pupil-to-image model: ``paraxial`` (eqs. 9-10), ``fastbeam`` (§3.2),
+            ``batoid`` (ray-traced, any field; §3.3) or ``poly10`` (the paper's own §3.3
+            tables of 10th-order polynomials fitted to ZEMAX ray hits, with its vignetting
+            circles).
         batoid_optic: batoid YAML template with a ``{band}`` placeholder (batoid mapping only).
+        mapping_tables: directory of the poly10 tables (``offAxis_c{x,y}{in,ex}_poly10.txt``
+            and ``mask_migrate.txt``), relative to ``config/instruments`` unless absolute
+            (poly10 mapping only).
         default_band: band used when the caller gives none.
         band_wavelength_nm: effective wavelength per band.
     """
@@ -50,6 +55,7 @@ class Instrument:
     stamp_size_px: int
     mapping: str = "paraxial"
     batoid_optic: str | None = None
+    mapping_tables: str | None = None
     default_band: str = "r"
     band_wavelength_nm: dict[str, float] = field(default_factory=dict)
     description: str = ""
@@ -69,6 +75,8 @@ class Instrument:
             problems.append(f"mapping must be one of {MAPPINGS}, got {self.mapping!r}")
         if self.mapping == "batoid" and not self.batoid_optic:
             problems.append("mapping 'batoid' needs batoid_optic (e.g. 'LSST_{band}.yaml')")
+        if self.mapping == "poly10" and not self.mapping_tables:
+            problems.append("mapping 'poly10' needs mapping_tables (e.g. 'poly10/lsst')")
         if not isinstance(self.band_wavelength_nm, dict) or not all(
             isinstance(v, (int, float)) and v > 0 for v in self.band_wavelength_nm.values()
         ):

@@ -14,6 +14,16 @@ unperturbed system and is what differs between models:
   field angle (§3.3): includes fast-beam projection, off-axis distortion and the design
   aberrations of that field point.  A smooth polynomial fitted to the ray hits supplies the
   Jacobian.  Vignetting comes from the same trace.
+* ``poly10``: the paper's own §3.3 model: ``x'_0`` from its tables of 10th-order 2-D
+  polynomials fitted to ZEMAX ray hits at field points on the +45° diagonal, interpolated
+  linearly in field radius and rotated to the star's azimuth (the telescope is rotationally
+  symmetric), and linearly in the detector offset between the tabulated intra and extra
+  planes (straight rays).  Vignetting from the paper's two circles per field
+  (``mask_migrate.txt``: a pass circle and a block circle centred on the field direction).
+  No design wavefront is added back: the estimate is whatever wavefront the tables' ray
+  hits do not already hold.  For the FAM tables (``lsstfam``) that is the total wavefront
+  (their hits hold no design aberration: the FAM estimates match the ZEMAX truth of the
+  nominal design, README), as it is for the reference code's output on the 1-mm pair.
 
 All positions are in pixels, in the focal-plane frame of the field angles (``[row=y, col=x]``
 images), relative to a reference point (the chief ray for batoid, the pupil centre's image
@@ -34,14 +44,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from pathlib import Path
 
 import numpy as np
 
+from ..paths import config_dir
 from .errors import ConfigError
 from .instrument import Instrument
 from .zernike import zernike_basis
 
-__all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "SIDES"]
+__all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "SIDES", "Poly10Tables",
+           "poly10_tables"]
 
 SIDES = ("intra", "extra")
 
@@ -196,6 +209,134 @@ def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np
     return (fx, fy, jxx, jxy, jyx, jyy), transmitted, rms
 
 
+# -- the paper's poly10 tables (§3.3) ------------------------------------------------------
+
+_POLY10_ORDER = 10
+
+
+def _poly_exponents(order: int) -> np.ndarray:
+    """(a, b) of the terms x^a y^b in the tables' order: by degree d, then x^(d-k) y^k."""
+    return np.array([(d - k, k) for d in range(order + 1) for k in range(d + 1)])
+
+
+@dataclass(frozen=True)
+class Poly10Tables:
+    """The paper's off-axis mapping and vignetting tables (§3.3), as read from disk.
+
+    Attributes:
+        ref_defocus_mm: detector offset of the tabulated intra and extra planes.
+        field_radius_deg: field radius of each row (rows lie on the +45° diagonal).
+        coef: (4, rows, 66) polynomial coefficients of x'_intra, y'_intra, x'_extra,
+            y'_extra in mm over the normalised pupil, in the reference (45°) orientation.
+        mask_radius_deg: field radius of each vignetting row.
+        mask: (rows, 4) ``ca, ra, cb, rb``: pass circle (centre ca along the field
+            direction, radius ra) and block circle (cb, rb), normalised pupil units.
+    """
+
+    ref_defocus_mm: float
+    field_radius_deg: np.ndarray
+    coef: np.ndarray
+    mask_radius_deg: np.ndarray
+    mask: np.ndarray
+
+    @staticmethod
+    def _interp(radius: np.ndarray, rows: np.ndarray, r: float) -> np.ndarray:
+        """Linear interpolation in field radius, clamped to the tabulated range."""
+        if r <= radius[0]:
+            return rows[0]
+        if r >= radius[-1]:
+            return rows[-1]
+        k = int(np.searchsorted(radius, r))
+        w = (r - radius[k - 1]) / (radius[k] - radius[k - 1])
+        return (1.0 - w) * rows[k - 1] + w * rows[k]
+
+    def coefficients(self, side: str, field_radius_deg: float,
+                     defocus_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """x' and y' polynomial coefficients (mm) of one side at a field radius and offset.
+
+        The tabulated planes sit at z = -l_ref (intra) and +l_ref (extra); between them a
+        ray is straight, so the coefficients are linear in the detector offset z.
+        """
+        c = np.stack([self._interp(self.field_radius_deg, self.coef[k], field_radius_deg)
+                      for k in range(4)])
+        z = -_side_sign(side) * defocus_mm  # intra: detector before focus
+        t = (self.ref_defocus_mm - z) / (2.0 * self.ref_defocus_mm)  # 1 at intra, 0 at extra
+        return c[2] + t * (c[0] - c[2]), c[3] + t * (c[1] - c[3])
+
+    def vignetting(self, field_radius_deg: float) -> np.ndarray:
+        """``ca, ra, cb, rb`` at a field radius (linear interpolation, clamped)."""
+        return self._interp(self.mask_radius_deg, self.mask, field_radius_deg)
+
+
+@lru_cache(maxsize=8)
+def poly10_tables(directory: str) -> Poly10Tables:
+    """Read the poly10 tables from ``directory`` (relative to ``config/instruments``)."""
+    d = Path(directory)
+    if not d.is_absolute():
+        d = config_dir() / "instruments" / d
+    try:
+        rows = [np.loadtxt(d / f"offAxis_c{a}{s}_poly{_POLY10_ORDER}.txt", ndmin=2)
+                for s in ("in", "ex") for a in ("x", "y")]
+        mask = np.loadtxt(d / "mask_migrate.txt", ndmin=2)
+    except OSError as exc:
+        raise ConfigError(f"cannot read poly10 mapping tables in {d}: {exc}") from exc
+    nterm = len(_poly_exponents(_POLY10_ORDER))
+    if any(r.shape != rows[0].shape or r.shape[1] != 3 + nterm for r in rows) or \
+            mask.shape[1] != 5:
+        raise ConfigError(f"poly10 tables in {d} have unexpected shapes")
+    radius = np.hypot(rows[0][:, 1], rows[0][:, 2])
+    return Poly10Tables(float(rows[0][0, 0]) * 1e3, radius,
+                        np.stack([r[:, 3:] for r in rows]), np.sqrt(2.0) * mask[:, 0],
+                        mask[:, 1:])
+
+
+def _poly10(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
+            field_deg: tuple[float, float]):
+    """Paper §3.3 mapping from the poly10 tables, rotated to the field azimuth.
+
+    The tables hold the field on the +45° diagonal; for a field at azimuth phi the pupil is
+    rotated by -(phi - 45°) into that reference orientation, mapped, and the image position
+    rotated back (and the Jacobian with it: ``J = R J_0 R^T``).  Returns the mapping parts
+    in pixels and the transmitted mask.
+    """
+    tab = poly10_tables(str(inst.mapping_tables))
+    fr = float(np.hypot(*field_deg))
+    theta = (np.arctan2(field_deg[1], field_deg[0]) if fr > 0 else np.pi / 4) - np.pi / 4
+    ct, st = np.cos(theta), np.sin(theta)
+    x0 = ct * x + st * y
+    y0 = -st * x + ct * y
+    # The polynomials were fitted over the annulus only, and a 10th-order polynomial
+    # diverges quickly outside it; the computation boundary beyond the pupil edges is
+    # mapped by first-order extrapolation from the nearest edge point instead.
+    r = np.hypot(x0, y0)
+    scale = np.clip(r, inst.obscuration, 1.0) / np.where(r > 0, r, 1.0)
+    xc, yc = x0 * scale, y0 * scale
+    cx, cy = tab.coefficients(side, fr, defocus_mm)
+    exps = _poly_exponents(_POLY10_ORDER)
+    a, b = exps[:, 0], exps[:, 1]
+    xp = np.vstack([xc**p for p in range(_POLY10_ORDER + 1)])
+    yp = np.vstack([yc**p for p in range(_POLY10_ORDER + 1)])
+    mono = xp[a] * yp[b]
+    # d/dx0 and d/dy0 of each monomial (exponent 0 terms vanish through the factor).
+    mdx = a[:, None] * xp[np.maximum(a - 1, 0)] * yp[b]
+    mdy = b[:, None] * xp[a] * yp[np.maximum(b - 1, 0)]
+    mm_to_px = 1e3 / inst.pixel_size_um
+    j0 = np.array([[cx @ mdx, cx @ mdy], [cy @ mdx, cy @ mdy]]) * mm_to_px
+    ex, ey = x0 - xc, y0 - yc
+    hx0 = cx @ mono * mm_to_px + j0[0, 0] * ex + j0[0, 1] * ey
+    hy0 = cy @ mono * mm_to_px + j0[1, 0] * ex + j0[1, 1] * ey
+    rot = np.array([[ct, -st], [st, ct]])
+    hx = ct * hx0 - st * hy0
+    hy = st * hx0 + ct * hy0
+    j = np.einsum("ik,klp,jl->ijp", rot, j0, rot)
+    # Vignetting: pass inside circle a, block inside circle b, centred on the field direction.
+    ca, ra, cb, rb = tab.vignetting(fr)
+    ux, uy = np.cos(theta + np.pi / 4), np.sin(theta + np.pi / 4)
+    transmitted = (np.hypot(x - ca * ux, y - ca * uy) <= ra) & \
+        (np.hypot(x - cb * ux, y - cb * uy) >= rb)
+    return (hx, hy, j[0, 0], j[0, 1], j[1, 0], j[1, 1]), transmitted
+
+
 def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *,
                     defocus_mm: float, band: str | None = None,
                     wavelength_nm: float | None = None,
@@ -208,7 +349,7 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
         x, y: reduced pupil coordinates (1-D arrays).
         defocus_mm: |detector offset| l.
         band, wavelength_nm: optical band and wavelength (batoid model only).
-        field_deg: field angle (x, y) of the star in degrees (batoid model only).
+        field_deg: field angle (x, y) of the star in degrees (batoid and poly10 models).
     """
     x = np.asarray(x, dtype=float).ravel()
     y = np.asarray(y, dtype=float).ravel()
@@ -219,6 +360,10 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
     elif inst.mapping == "fastbeam":
         parts = _fastbeam(inst, side, defocus_mm, x, y)
         transmitted = _annulus(inst, x, y)
+    elif inst.mapping == "poly10":
+        parts, transmitted = _poly10(inst, side, defocus_mm, x, y,
+                                     (float(field_deg[0]), float(field_deg[1])))
+        transmitted = transmitted & _annulus(inst, x, y)
     else:
         band = band or inst.default_band
         wl = inst.wavelength_nm(band, wavelength_nm)

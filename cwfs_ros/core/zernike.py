@@ -25,7 +25,8 @@ from functools import cached_property, lru_cache
 import numpy as np
 from galsim.zernike import Zernike
 
-__all__ = ["ZernikeBasis", "zernike_basis", "noll_to_nm", "xy_coefficients"]
+__all__ = ["ZernikeBasis", "zernike_basis", "noll_to_nm", "xy_coefficients", "annulus_quadrature",
+           "gram_matrix", "gram_summary"]
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -180,3 +181,43 @@ def zernike_basis(x: np.ndarray, y: np.ndarray, jmax: int = 22, eps: float = 0.6
     coeffs = np.asarray(xy_coefficients(jmax, float(eps)), dtype=dtype)
     z = np.ascontiguousarray(coeffs @ mono)
     return ZernikeBasis(jmax, float(eps), mono, coeffs, z)
+
+
+def annulus_quadrature(eps: float, n_radial: int = 24,
+                       n_azimuth: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points and weights integrating polynomials exactly over the annulus ``eps <= r <= 1``.
+
+    Gauss-Legendre in ``r`` (with the ``r dr`` measure) times a uniform rule in azimuth,
+    normalised so the weights sum to 1 (area average, Noll's normalisation).  With the
+    defaults it is exact for the radial and azimuthal orders of Z1..Z_231.
+    """
+    t, wt = np.polynomial.legendre.leggauss(n_radial)
+    r = 0.5 * (1 - eps) * t + 0.5 * (1 + eps)
+    wr = wt * r
+    th = 2 * np.pi * np.arange(n_azimuth) / n_azimuth
+    rr, tt = np.meshgrid(r, th, indexing="ij")
+    w = np.repeat(wr, n_azimuth) / n_azimuth
+    return (rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel(), w / w.sum()
+
+
+def gram_matrix(basis: ZernikeBasis, mask: np.ndarray | None = None,
+                weights: np.ndarray | None = None, j_min: int = 4,
+                j_max: int = 22) -> np.ndarray:
+    """Gram matrix ``<Z_i, Z_j>`` of Noll terms j_min..j_max over a (vignetted) pupil.
+
+    Paper §3.3: annular Zernikes are orthonormal on the full annulus (the matrix is the
+    identity there) and stop being so on a vignetted pupil.  The inner product is the area
+    average over the points selected by ``mask`` (all points if None), with quadrature
+    ``weights`` if given (else equal weights: a uniform grid).
+    """
+    z = basis.z[j_min - 1:j_max].astype(float)
+    w = np.ones(basis.npoints) if weights is None else np.asarray(weights, float)
+    if mask is not None:
+        w = np.where(mask, w, 0.0)
+    return (z * w) @ z.T / w.sum()
+
+
+def gram_summary(gram: np.ndarray) -> tuple[float, float]:
+    """Largest |off-diagonal| element and condition number of a Gram matrix."""
+    off = gram - np.diag(np.diag(gram))
+    return float(np.abs(off).max()), float(np.linalg.cond(gram))
