@@ -112,7 +112,8 @@ def main() -> int:
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
-    threading.Thread(target=ex.spin, daemon=True).start()
+    spin_thread = threading.Thread(target=ex.spin, daemon=True)
+    spin_thread.start()
     msgs = {k: image_msg(v, 0) for k, v in images.items()}
 
     def run_phase(period: float, duration: float, sample_rss: bool) -> dict:
@@ -192,6 +193,7 @@ def main() -> int:
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
         ex.shutdown(timeout_sec=1.0)
+        spin_thread.join(5.0)
         node.destroy_node()
         rclpy.try_shutdown()
     return code

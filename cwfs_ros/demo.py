@@ -145,11 +145,15 @@ class LoopRun:
         return np.array([r.true_error_nm for r in self.records])
 
     def reduction(self, within: int = 5) -> float:
-        """Initial error / lowest error over visits 2..within+1 (``within`` corrections)."""
+        """First visit's error / the lowest error of visits 2..``within``.
+
+        "Falls 5x within 5 visits" counts the first visit, so it allows 4 corrections: the
+        5th visit is rendered after the 4th correction.
+        """
         e = self.true_error_nm
         if len(e) < 2:
             return float("nan")
-        return float(e[0] / np.min(e[1:within + 1]))
+        return float(e[0] / np.min(e[1:within]))
 
     def summary(self) -> dict[str, Any]:
         e = self.true_error_nm
@@ -474,7 +478,7 @@ td,th{{padding:2px 10px;text-align:right}}</style></head><body>
 {run.config.n_photons:g} photons per donut) through camera_sim_node, wavefront_node and
 ofc_node. True wavefront error (design removed, mean over corners of
 sqrt(&Sigma; Z4..Z22&sup2;)): {e[0]:.0f} nm at the first visit, {e[-1]:.0f} nm at the last,
-a reduction of {run.reduction(5):.1f}&times; within 5 corrections.</p>
+a reduction of {run.reduction(5):.1f}&times; within 5 visits.</p>
 <img src="{png_name}" style="width:100%">
 <table><tr><th>visit</th><th>true error (nm)</th><th>estimated error (nm)</th>
 <th>median corner estimate RMS error (nm)</th><th>correction valid</th><th>render (s)</th>

@@ -80,10 +80,11 @@ state needs ``sum(e) = 0``, so ``e`` must change sign); ``ki`` pays off against 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import galsim
 import numpy as np
@@ -98,6 +99,7 @@ __all__ = [
     "CORNER_NAMES",
     "CORNER_SENSORS",
     "DOF_CONVENTIONS",
+    "MATRIX_SOURCES",
     "N_CORNERS",
     "N_DOF",
     "N_MEAS",
@@ -123,6 +125,8 @@ __all__ = [
     "load_optics_config",
     "observability",
     "ofc_config_dir",
+    "sensitivity_for_source",
+    "solver_from_params",
 ]
 
 NOLL_MIN = 4
@@ -974,6 +978,56 @@ class OFCSolver:
         return OFCResult(u.copy(), total.copy(), True, "ok", est.wavefront_rms_nm,
                          _rms(pred, n_used), est.n_modes_used, e, clipped, est.condition,
                          est.corners_used, time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------------------------
+# a solver from the ofc_node's parameters
+# --------------------------------------------------------------------------------------------
+MATRIX_SOURCES: tuple[str, ...] = ("bundled", "ts_ofc")
+
+
+@lru_cache(maxsize=4)
+def sensitivity_for_source(source: str) -> SensitivityMatrix:
+    """The 76x50 matrix of ``source`` at the corner mid-points (batoid_rubin DoF convention).
+
+    ``"bundled"``: this project's matrix (:meth:`SensitivityMatrix.from_bundled`);
+    ``"ts_ofc"``: Rubin's, evaluated at :func:`corner_mid_field_points_deg`. Cached: the
+    ts_ofc one takes a double-Zernike evaluation.
+    """
+    if source == "bundled":
+        return SensitivityMatrix.from_bundled()
+    if source == "ts_ofc":
+        return SensitivityMatrix.from_ts_ofc(fields_deg=corner_mid_field_points_deg())
+    raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
+
+
+def solver_from_params(get: Callable[[str], Any]) -> OFCSolver:
+    """An :class:`OFCSolver` from the ofc_node's parameter values, ``get(name) -> value``.
+
+    The one place that turns the parameters of ``config/params.yaml`` (``band``,
+    ``matrix_source``, ``method``, ``n_modes``, ``alpha``, ``weights``, ``kp``, ``ki``,
+    ``dof_mask``, ``allow_partial``, ``max_step_scale``, ``clip_to_range``, ``max_condition``)
+    into a solver, for the node and for the offline replay of a bag alike. Raises ConfigError
+    naming the problem.
+    """
+    spec = load_dof_spec()
+    band = str(get("band"))
+    if band not in BANDS:
+        raise ConfigError(f"band must be one of {BANDS}, got {band!r}")
+    mask = np.asarray(list(get("dof_mask")), dtype=bool)
+    if mask.shape != (N_DOF,):
+        raise ConfigError(f"dof_mask must hold {N_DOF} booleans, got {mask.size}")
+    scale = float(get("max_step_scale"))
+    return OFCSolver(
+        sensitivity_for_source(str(get("matrix_source"))), band=band, method=str(get("method")),
+        n_modes=int(get("n_modes")), alpha=float(get("alpha")),
+        weights=str(get("weights")), kp=float(get("kp")),
+        ki=float(get("ki")), dof_mask=mask,
+        clip_range="dof.yaml" if get("clip_to_range") else None,
+        max_step=spec.max_step * scale if scale > 0 else None,
+        allow_partial=bool(get("allow_partial")),
+        max_condition=float(get("max_condition")),
+        dof_spec=spec)
 
 
 # --------------------------------------------------------------------------------------------

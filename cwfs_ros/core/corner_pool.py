@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -65,6 +66,17 @@ class EstimatorSettings:
     solver: str = "exp"
     outer_iterations: int = 0
     pad_px: int = 0
+
+    @classmethod
+    def from_params(cls, get: Callable[[str], Any]) -> EstimatorSettings:
+        """The settings of wavefront_node's parameters, ``get(name) -> value``.
+
+        The one mapping from parameter names to settings, for the node and for the offline
+        replay of a bag (:mod:`cwfs_ros.replay`) alike.
+        """
+        return cls(instrument=str(get("instrument")), band=str(get("band")),
+                   solver=str(get("solver")), outer_iterations=int(get("outer_iterations")),
+                   pad_px=int(get("pad_px")))
 
     def estimator_kwargs(self) -> dict:
         kw: dict = {"instrument": self.instrument, "band": self.band, "solver": self.solver}

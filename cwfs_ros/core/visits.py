@@ -6,6 +6,9 @@ so that they can be tested without a clock or a middleware:
 * :class:`PairingBuffer` pairs the intra- and extra-focal images of each corner by their
   exposure stamp (integer nanoseconds, equal within a tolerance). It reports duplicate, late
   and (after a timeout) unpaired images as :class:`Rejection` records.
+* :func:`image_record_from_msg` decodes a ``sensor_msgs/Image``-shaped object (an rclpy
+  message, or one deserialised from a bag by rosbags: both carry the same field names) into an
+  :class:`ImageRecord`, so the live node and the offline replay decode identically.
 * :class:`VisitAssembler` collects the per-corner results of a visit (from this process or
   from ``CornerWavefront`` messages of other processes) into the fixed 76-entry layout of
   ``cwfs_msgs/WavefrontVector``: 4 corners (R00, R04, R40, R44) x Noll Z4..Z22. A visit is
@@ -21,8 +24,11 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+
+from .images import decode_image
 
 __all__ = [
     "CORNERS",
@@ -37,7 +43,9 @@ __all__ = [
     "VisitAssembler",
     "VisitVector",
     "format_stamp",
+    "image_record_from_msg",
     "load_corner_fields",
+    "stamp_to_ns",
     "zernikes_by_noll",
 ]
 
@@ -45,6 +53,11 @@ CORNERS: tuple[str, ...] = ("R00", "R04", "R40", "R44")
 SIDES: tuple[str, ...] = ("intra", "extra")
 NOLL: tuple[int, ...] = tuple(range(4, 23))
 N_ZK = len(NOLL)  # 19
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time``-shaped object (``sec``, ``nanosec``)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def format_stamp(stamp_ns: int) -> str:
@@ -89,6 +102,29 @@ class ImageRecord:
     error: str | None = None
     frame_id: str = ""
     received: float = 0.0
+
+
+def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> ImageRecord:
+    """Decode a ``sensor_msgs/Image``-shaped message into an :class:`ImageRecord` (never raises).
+
+    ``msg`` is anything with the Image fields (``header.stamp``, ``header.frame_id``,
+    ``height``, ``width``, ``encoding``, ``step``, ``is_bigendian``, ``data``): an rclpy message
+    or a rosbags-deserialised one. ``received`` is the receive time in seconds (monotonic for
+    the live node, the bag's receive stamp for a replay). A message that cannot be decoded gives
+    a record with ``image=None`` and ``error`` naming the problem; it still takes part in
+    pairing so that the corner's result reports it.
+    """
+    rec = ImageRecord(corner, side, stamp_to_ns(msg.header.stamp),
+                      frame_id=str(msg.header.frame_id), received=float(received))
+    try:
+        rec.image = decode_image(msg.data, height=msg.height, width=msg.width,
+                                 encoding=msg.encoding, step=msg.step,
+                                 is_bigendian=bool(msg.is_bigendian))
+    except ValueError as exc:  # ImageDecodeError is a ValueError
+        rec.error = str(exc)
+    except Exception as exc:  # noqa: BLE001 - a message must never crash the caller
+        rec.error = f"bad_data: {type(exc).__name__}: {exc}"
+    return rec
 
 
 @dataclass(frozen=True)

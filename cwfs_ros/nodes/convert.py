@@ -13,7 +13,7 @@ from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector
 from sensor_msgs.msg import Image
 
 from cwfs_ros.core.corner_pool import CornerOutcome
-from cwfs_ros.core.images import ENCODINGS, decode_image
+from cwfs_ros.core.images import ENCODINGS
 from cwfs_ros.core.visits import (
     CORNERS,
     NOLL,
@@ -22,6 +22,7 @@ from cwfs_ros.core.visits import (
     VisitVector,
     zernikes_by_noll,
 )
+from cwfs_ros.core.visits import image_record_from_msg as core_image_record
 
 from .common import ns_to_stamp, stamp_to_ns
 
@@ -43,19 +44,11 @@ def image_record_from_msg(msg: Image, corner: str, side: str, received: float) -
     """Decode an Image message into an :class:`ImageRecord` (never raises).
 
     A message that cannot be decoded gives a record with ``image=None`` and ``error`` naming
-    the problem; it still takes part in pairing so that the corner's result reports it.
+    the problem; it still takes part in pairing so that the corner's result reports it. The
+    rules are :func:`cwfs_ros.core.visits.image_record_from_msg`, which the offline replay of a
+    bag (:mod:`cwfs_ros.replay`) uses too.
     """
-    stamp = stamp_to_ns(msg.header.stamp)
-    rec = ImageRecord(corner, side, stamp, frame_id=msg.header.frame_id, received=received)
-    try:
-        rec.image = decode_image(msg.data, height=msg.height, width=msg.width,
-                                 encoding=msg.encoding, step=msg.step,
-                                 is_bigendian=bool(msg.is_bigendian))
-    except ValueError as exc:  # ImageDecodeError is a ValueError
-        rec.error = str(exc)
-    except Exception as exc:  # noqa: BLE001 - a message must never crash the node
-        rec.error = f"bad_data: {type(exc).__name__}: {exc}"
-    return rec
+    return core_image_record(msg, corner, side, received)
 
 
 def image_msg(array: np.ndarray, stamp_ns: int, *, encoding: str = "32FC1",

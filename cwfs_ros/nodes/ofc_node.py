@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Sequence
-from functools import lru_cache
 
 import numpy as np
 from cwfs_msgs.msg import DofCorrection, WavefrontVector
@@ -53,40 +52,16 @@ __all__ = ["OfcNode", "build_solver", "main"]
 NODE_NAME = "ofc_node"
 VECTOR_TOPIC = "aos/wfs/wavefront"
 CORRECTION_TOPIC = "aos/ofc/dof_correction"
-MATRIX_SOURCES = ("bundled", "ts_ofc")
+MATRIX_SOURCES = C.MATRIX_SOURCES
 _SOLVER_PARAMS = ("band", "matrix_source", "method", "n_modes", "alpha", "weights", "kp", "ki",
                   "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
                   "max_condition")
 
 
-@lru_cache(maxsize=4)
-def sensitivity(source: str) -> C.SensitivityMatrix:
-    """The 76x50 matrix of a source at the corner mid-points (batoid_rubin DoF convention)."""
-    if source == "bundled":
-        return C.SensitivityMatrix.from_bundled()
-    if source == "ts_ofc":
-        return C.SensitivityMatrix.from_ts_ofc(fields_deg=C.corner_mid_field_points_deg())
-    raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
-
-
-def build_solver(get) -> C.OFCSolver:
-    """An OFCSolver from parameter values (``get(name)``); raises ConfigError naming the problem."""
-    spec = C.load_dof_spec()
-    band = str(get("band"))
-    if band not in C.BANDS:
-        raise ConfigError(f"band must be one of {C.BANDS}, got {band!r}")
-    mask = np.asarray(list(get("dof_mask")), dtype=bool)
-    if mask.shape != (C.N_DOF,):
-        raise ConfigError(f"dof_mask must hold {C.N_DOF} booleans, got {mask.size}")
-    scale = float(get("max_step_scale"))
-    return C.OFCSolver(
-        sensitivity(str(get("matrix_source"))), band=band, method=str(get("method")),
-        n_modes=int(get("n_modes")), alpha=float(get("alpha")), weights=str(get("weights")),
-        kp=float(get("kp")), ki=float(get("ki")), dof_mask=mask,
-        clip_range="dof.yaml" if get("clip_to_range") else None,
-        max_step=spec.max_step * scale if scale > 0 else None,
-        allow_partial=bool(get("allow_partial")), max_condition=float(get("max_condition")),
-        dof_spec=spec)
+# The matrix of a source and the solver of a parameter set live in the core, where the offline
+# replay of a bag (cwfs_ros.replay) builds the very same solver.
+sensitivity = C.sensitivity_for_source
+build_solver = C.solver_from_params
 
 
 class OfcNode(Node):

@@ -235,10 +235,7 @@ class WavefrontNode(Node):
 
     @staticmethod
     def _settings_from(get) -> EstimatorSettings:
-        return EstimatorSettings(instrument=str(get("instrument")), band=str(get("band")),
-                                 solver=str(get("solver")),
-                                 outer_iterations=int(get("outer_iterations")),
-                                 pad_px=int(get("pad_px")))
+        return EstimatorSettings.from_params(get)
 
     @staticmethod
     def _orientation_from(corner: str, side: str, get) -> Orientation:

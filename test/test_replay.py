@@ -1,0 +1,287 @@
+"""Record a simulated closed-loop run, replay it offline, and get the live results back.
+
+The graph runs in this process as ``cwfs-ros bringup --sim`` would (camera_sim_node +
+wavefront_node + ofc_node via :func:`cwfs_ros.launch.run_nodes`, on the test's own Context and
+DDS domain), with the bag recorder (:class:`cwfs_ros.bag.Recorder`) on the same executor. Two
+visits are triggered; an independent tester node keeps every CornerWavefront and
+DofCorrection it receives over DDS. After the graph is shut down, :func:`cwfs_ros.replay.replay`
+re-runs the estimator and the OFC solver on the bag with no middleware, and its CSV files must
+hold the very numbers the live nodes published. They are computed by the same float64 code
+(worker processes and replay both pin BLAS to one thread), so the tolerance is 1e-6 nm for the
+Zernikes and 1e-9 (relative) for the DoF.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import wait_for
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("cwfs_ros.sim")
+
+from cwfs_msgs.msg import CornerWavefront, DofCorrection  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from cwfs_ros import bag as B  # noqa: E402
+from cwfs_ros import replay as R  # noqa: E402
+from cwfs_ros.cli import main as cli_main  # noqa: E402
+from cwfs_ros.launch import run_nodes  # noqa: E402
+from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+VISITS = 2
+CORNERS = ("R00", "R04", "R40", "R44")
+OVERLAY = {
+    "wavefront_node": {"ros__parameters": {"visit_timeout_s": 10.0}},
+    "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0}},
+    "camera_sim_node": {"ros__parameters": {
+        "visit_period_s": 0.0, "n_photons": 2e5, "perturbation_seed": 11,
+        "perturbation_scale": 1.0, "render_seed": 5}},
+}
+# Topics the nodes create for their own plumbing, not part of the data flow.
+PLUMBING = {"/rosout", "/parameter_events"}
+
+
+def stamp_text(ns: int) -> str:
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return f"{sec}.{nsec:09d}"
+
+
+@pytest.fixture(scope="module")
+def recorded_run(tmp_path_factory, ros_domain_module):
+    """Run the simulated graph for two visits, recording everything; returns what it saw."""
+    tmp = tmp_path_factory.mktemp("replay")
+    overlay = tmp / "overlay.yaml"
+    overlay.write_text(yaml.safe_dump(OVERLAY))
+    bag_dir = tmp / "run_bag"
+    ctx = rclpy.Context()
+    started, ready = {}, threading.Event()
+
+    def on_ready(nodes, executor):
+        started["nodes"] = {n.get_name(): n for n in nodes}
+        started["executor"] = executor
+        ready.set()
+
+    th = threading.Thread(target=run_nodes,
+                          args=(["wavefront_node", "ofc_node", "camera_sim_node"],),
+                          kwargs={"context": ctx, "domain_id": ros_domain_module,
+                                  "params_files": [overlay], "on_ready": on_ready},
+                          daemon=True)
+    th.start()
+    out: dict = {"overlay": overlay, "bag": bag_dir, "tmp": tmp}
+    try:
+        assert ready.wait(30), "nodes did not start"
+        nodes = started["nodes"]
+        wf, cam = nodes["wavefront_node"], nodes["camera_sim_node"]
+        rec = B.Recorder(bag_dir, context=ctx, storage="mcap")
+        tester = rclpy.create_node("replay_tester", context=ctx)
+        corners: list[CornerWavefront] = []
+        dofs: list[DofCorrection] = []
+        for c in CORNERS:
+            tester.create_subscription(CornerWavefront, f"aos/wfs/{c}/wavefront",
+                                       corners.append, OUTPUT_QOS)
+        tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", dofs.append,
+                                   OUTPUT_QOS)
+        trigger = tester.create_client(Trigger, "camera_sim_node/trigger")
+        started["executor"].add_node(rec.node)
+        started["executor"].add_node(tester)
+        assert trigger.wait_for_service(timeout_sec=10)
+        wait_for(lambda: wf.ready, 60, "wavefront worker warm-up")
+        wait_for(lambda: all(s.get_publisher_count() > 0 for s in rec.subscriptions.values()),
+                 15, "the recorder to match every publisher of the graph")
+        wait_for(lambda: all(p.get_subscription_count() >= 2 for p in cam.pubs.values()), 10,
+                 "the images to have two readers (wavefront_node, recorder)")
+        for k in range(1, VISITS + 1):
+            applied = cam.stats["corrections_applied"]
+            fut = trigger.call_async(Trigger.Request())
+            wait_for(fut.done, 10, "trigger response")
+            assert fut.result().success, fut.result().message
+            wait_for(lambda k=k: len(dofs) >= k, 90, f"DofCorrection of visit {k}")
+            wait_for(lambda a=applied: cam.stats["corrections_applied"] > a, 10,
+                     f"correction {k} applied")
+        # Everything the tester got must be in the bag too before it is closed.
+        wait_for(lambda: rec.counts()["/aos/ofc/dof_correction"] >= VISITS
+                 and all(rec.counts()[f"/aos/wfs/{c}/wavefront"] >= VISITS for c in CORNERS),
+                 10, "the recorder to get the last results")
+        out["summary"] = rec.close()
+        out["live_corners"], out["live_dofs"] = list(corners), list(dofs)
+        out["published"] = {
+            n.get_name(): dict(n.get_publisher_names_and_types_by_node(n.get_name(),
+                                                                       n.get_namespace()))
+            for n in nodes.values()}
+        out["params"] = {name: {p: nodes[name].get_parameter(p).value for p in defaults}
+                         for name, defaults in (("wavefront_node", R.WAVEFRONT_DEFAULTS),
+                                                ("ofc_node", R.OFC_DEFAULTS))}
+    finally:
+        ctx.try_shutdown()
+        th.join(15)
+    return out
+
+
+@pytest.fixture(scope="module")
+def ros_domain_module():
+    import conftest
+
+    return (conftest._domain_base + next(conftest._domain_counter)) % conftest._N_DOMAINS
+
+
+@pytest.fixture(scope="module")
+def replayed(recorded_run):
+    t0 = time.monotonic()
+    res = R.replay(recorded_run["bag"], recorded_run["tmp"] / "replay_out",
+                   params_files=[recorded_run["overlay"]], progress=False)
+    print(f"\nreplay of {VISITS} visits took {time.monotonic() - t0:.1f} s")
+    return res
+
+
+def test_default_topics_are_everything_the_graph_publishes(recorded_run):
+    published = {}
+    for topics in recorded_run["published"].values():
+        for name, types in topics.items():
+            if name not in PLUMBING:
+                published[name] = types
+    assert set(published) == set(B.DEFAULT_TOPICS)
+    for name, types in published.items():
+        assert types == [B.DEFAULT_TOPICS[name]], name
+
+
+def test_recording_holds_the_run(recorded_run):
+    s = recorded_run["summary"]
+    counts = {t: n for t, (_, n, _) in s.topics.items()}
+    for c in CORNERS:
+        for side in ("intra", "extra"):
+            assert counts[f"/aos/wfs/{c}/{side}/image"] == VISITS
+        assert counts[f"/aos/wfs/{c}/wavefront"] == VISITS
+    assert counts["/aos/wfs/wavefront"] == VISITS
+    assert counts["/aos/ofc/dof_correction"] == VISITS
+    assert counts["/aos/sim/truth"] == VISITS
+    with B.open_bag(recorded_run["bag"]) as bag:
+        assert bag.storage == "mcap" and bag.version == 9
+        assert {t: i.count for t, i in bag.topics.items()} == counts
+        # the live corner results in the bag are bit-identical to what the tester received
+        stored = {(m.corner, stamp_to_ns(m.header.stamp)): list(m.zernikes_nm)
+                  for _, m in bag.decoded([f"/aos/wfs/{c}/wavefront" for c in CORNERS])}
+    live = {(m.corner, stamp_to_ns(m.header.stamp)): list(m.zernikes_nm)
+            for m in recorded_run["live_corners"]}
+    assert stored == live
+
+
+def test_replay_parameters_are_the_nodes(recorded_run):
+    """replay resolves the same parameter values the running nodes had (defaults + YAML)."""
+    for node, defaults in (("wavefront_node", R.WAVEFRONT_DEFAULTS),
+                           ("ofc_node", R.OFC_DEFAULTS)):
+        mine = R.node_parameters(node, [recorded_run["overlay"]], defaults=defaults)
+        live = recorded_run["params"][node]
+        for name in defaults:
+            a, b = mine[name], live[name]
+            if isinstance(b, (list, tuple)) or hasattr(b, "tolist"):
+                a, b = list(a), list(b)
+            assert a == b and type(a) is type(b) or (isinstance(a, float) and a == b), \
+                (node, name, a, b)
+
+
+def test_replay_reproduces_the_live_corner_wavefronts(recorded_run, replayed):
+    live = recorded_run["live_corners"]
+    assert len(live) == VISITS * len(CORNERS)
+    assert all(m.valid for m in live), [m.status for m in live if not m.valid]
+    with open(replayed.files["zernikes"], newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == VISITS * len(CORNERS)
+    by_key = {(r["corner"], r["stamp"]): r for r in rows}
+    worst = 0.0
+    for m in live:
+        r = by_key[(m.corner, stamp_text(stamp_to_ns(m.header.stamp)))]
+        assert r["valid"] == "1", r["status"]
+        assert list(m.noll) == list(range(4, 23))
+        z = np.array([float(r[f"Z{j}"]) for j in range(4, 23)])
+        diff = np.abs(z - np.asarray(m.zernikes_nm))
+        worst = max(worst, float(diff.max()))
+        assert diff.max() <= 1e-6, (m.corner, diff.max())
+    # the visits are numbered in stamp order, each with its four corners
+    stamps = sorted({stamp_to_ns(m.header.stamp) for m in live})
+    for r in rows:
+        assert int(r["visit"]) == 1 + [stamp_text(s) for s in stamps].index(r["stamp"])
+    print(f"max |Z replay - Z live| = {worst:.3g} nm")
+
+
+def test_replay_reproduces_the_live_dof_corrections(recorded_run, replayed):
+    live = recorded_run["live_dofs"]
+    assert len(live) == VISITS and all(m.valid for m in live), [m.status for m in live]
+    with open(replayed.files["dof"], newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == VISITS
+    names = [h[len("dof."):] for h in rows[0] if h.startswith("dof.")]
+    assert len(names) == 50 and names[0] == "M2_dz"
+    by_stamp = {r["stamp"]: r for r in rows}
+    for m in live:
+        r = by_stamp[stamp_text(stamp_to_ns(m.header.stamp))]
+        assert r["valid"] == "1", r["status"]
+        dof = np.array([float(r[f"dof.{n}"]) for n in names])
+        total = np.array([float(r[f"total.{n}"]) for n in names])
+        np.testing.assert_allclose(dof, np.asarray(m.dof), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(total, np.asarray(m.dof_total), rtol=1e-9, atol=1e-12)
+        assert float(r["wavefront_rms_nm"]) == pytest.approx(m.wavefront_rms_nm, rel=1e-9)
+        assert int(r["n_modes_used"]) == m.n_modes_used
+    # a non-trivial correction: the perturbed telescope was actually being corrected
+    assert np.abs(np.asarray(live[0].dof[:10])).max() > 1e-3
+
+
+def test_replay_reports_the_comparison_and_writes_plots(replayed):
+    cmp = replayed.comparison
+    assert cmp is not None
+    assert cmp.corners_compared == VISITS * len(CORNERS) and cmp.dof_compared == VISITS
+    assert cmp.corners_validity_mismatch == 0 and cmp.dof_validity_mismatch == 0
+    assert cmp.max_zernike_diff_nm <= 1e-6
+    assert cmp.max_dof_diff <= 1e-9 and cmp.max_dof_total_diff <= 1e-9
+    assert cmp.corners_not_live == 0 and cmp.live_corners_not_replayed == 0
+    import matplotlib.image as mpimg
+
+    for key in ("zernikes_plot", "dof_plot"):
+        img = mpimg.imread(replayed.files[key])
+        assert img.shape[0] > 400 and img.shape[1] > 800
+        assert np.std(img[..., :3]) > 0.05  # not a blank canvas
+
+
+def test_replay_cli_matches_even_with_more_blas_threads(recorded_run, tmp_path):
+    """The command line, in a fresh process whose environment asks for two BLAS/OpenMP
+    threads: replay still pins one (the workers do), else the sums run in another order and
+    the estimates differ from the live ones by ~1e-4 nm."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2", OMP_NUM_THREADS="2",
+               PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
+    argv = ["replay", str(recorded_run["bag"]), "--out", str(tmp_path / "o"), "--params",
+            str(recorded_run["overlay"]), "--no-progress", "--no-plots"]
+    # offline: the middleware is never loaded
+    code = ("import sys; from cwfs_ros.cli import main; rc = main(sys.argv[1:]); "
+            "assert 'rclpy' not in sys.modules, 'replay loaded rclpy'; sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert f"{VISITS * 4} corner estimates ({VISITS * 4} valid)" in proc.stdout
+    assert "live comparison: 8 corner estimates, max |dZ| = 0 nm" in proc.stdout
+    cmp = json.loads((tmp_path / "o" / "summary.json").read_text())["comparison"]
+    assert cmp["max_zernike_diff_nm"] <= 1e-6 and cmp["max_dof_diff"] <= 1e-9
+    assert (tmp_path / "o" / "zernikes.csv").is_file()
+    assert not (tmp_path / "o" / "zernikes.png").exists()
+
+
+def test_replay_of_a_bag_without_images_is_a_clean_error(tmp_path, capsys):
+    src = Path(__file__).parent / "data" / "rosbag2-real" / "mcap-cdr_test"
+    code = cli_main(["replay", str(src), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("cwfs-ros replay: error:") and "no image topics" in err
+    assert len(err.splitlines()) == 1
