@@ -94,6 +94,7 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 CORNER_TYPE = "cwfs_msgs/msg/CornerWavefront"
 DOF_TOPIC = "/aos/ofc/dof_correction"
 DOF_TYPE = "cwfs_msgs/msg/DofCorrection"
+SIM_TRUTH_TOPIC = "/aos/sim/truth"
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -430,8 +431,12 @@ def _compare(corners: list[CornerRow], dofs: list[DofRow], live_corners: dict[tu
 
 
 def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[str | Path] = (),
-           progress: bool = True, plots: bool = True) -> ReplayResult:
+           progress: bool = True, plots: bool = True, sim: bool | None = None) -> ReplayResult:
     """Run the estimator and the OFC solver offline on every visit of a bag; write the outputs.
+
+    ``sim``: layer config/sim.yaml under the ``params_files``, as ``bringup --sim`` does;
+    ``None`` (default) decides from the bag: a bag holding ``/aos/sim/truth`` was recorded from
+    the simulated loop.
 
     Raises :class:`~cwfs_ros.bag.BagError` for a bad bag (or one without image topics) and
     :class:`~cwfs_ros.core.errors.ConfigError` for bad parameters.
@@ -439,7 +444,12 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
     from tqdm import tqdm
 
     from .bag import BagError, open_bag
+    from .launch import sim_params_file
 
+    if sim is None:
+        with open_bag(bag_path) as bag:
+            sim = SIM_TRUTH_TOPIC in bag.topics
+    params_files = [*([sim_params_file()] if sim else []), *params_files]
     wf = node_parameters("wavefront_node", params_files, defaults=WAVEFRONT_DEFAULTS)
     ofc = node_parameters("ofc_node", params_files, defaults=OFC_DEFAULTS)
     out = Path(out_dir)
@@ -453,7 +463,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
             if bag.topics[t].type != IMAGE_TYPE:
                 raise BagError(f"{bag.path}: {t} holds {bag.topics[t].type}, not {IMAGE_TYPE}")
         bag.require_decodable(images)
-        notes = []
+        notes = ([f"{sim_params_file().name} applied under the --params files (the bag holds "
+                  f"{SIM_TRUTH_TOPIC}: a simulated run, as bringup --sim)"] if sim else [])
         live = {corner_topic(c): c for c in _CORNERS if corner_topic(c) in bag.topics}
         for t in list(live):
             if bag.topics[t].type != CORNER_TYPE or bag.decode_problem(t):
@@ -664,7 +675,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     try:
         result = replay(args.bag, args.out, params_files=args.params,
-                        progress=not args.no_progress, plots=not args.no_plots)
+                        progress=not args.no_progress, plots=not args.no_plots,
+                        sim={"auto": None, "yes": True, "no": False}[args.sim])
     except BagError as exc:
         raise _cli_error(args, exc) from None
     print(result.format())
@@ -690,6 +702,9 @@ def add_replay_parser(subparsers: Any, cli_error: type[Exception] | None = None
     p.add_argument("--params", action="append", default=[], metavar="FILE",
                    help="ROS parameter YAML overlaid on config/params.yaml (repeatable; "
                         "ros__parameters keyed by node name)")
+    p.add_argument("--sim", choices=("auto", "yes", "no"), default="auto",
+                   help="layer config/sim.yaml under the --params files, as bringup --sim "
+                        "does; auto: when the bag holds /aos/sim/truth (default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-plots", action="store_true", help="write the CSV files only")
     p.set_defaults(func=cmd_replay, cli_error=cli_error)

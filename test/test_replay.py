@@ -285,3 +285,23 @@ def test_replay_of_a_bag_without_images_is_a_clean_error(tmp_path, capsys):
     assert code == 2
     assert err.startswith("cwfs-ros replay: error:") and "no image topics" in err
     assert len(err.splitlines()) == 1
+
+
+def test_replay_layers_sim_yaml_for_a_simulated_run(recorded_run, replayed, tmp_path):
+    """The bag holds /aos/sim/truth, so config/sim.yaml sits under the --params files (as
+    bringup --sim does); the test overlay sets kp/ki itself, so the values are the overlay's."""
+    assert any("sim.yaml applied" in n for n in replayed.comparison.notes)
+    assert replayed.ofc_params["kp"] == OVERLAY["ofc_node"]["ros__parameters"]["kp"]
+    # Without any overlay, the simulated run's gains come from config/sim.yaml ...
+    import yaml as _yaml
+
+    from cwfs_ros.launch import sim_params_file
+
+    sim_kp = _yaml.safe_load(sim_params_file().read_text())["ofc_node"]["ros__parameters"]["kp"]
+    auto = R.replay(recorded_run["bag"], tmp_path / "auto", progress=False, plots=False)
+    assert auto.ofc_params["kp"] == sim_kp
+    # ... and --sim no gives config/params.yaml's (ts_ofc's) gains.
+    plain = R.replay(recorded_run["bag"], tmp_path / "plain", progress=False, plots=False,
+                     sim=False)
+    assert plain.ofc_params["kp"] != sim_kp
+    assert not any("sim.yaml applied" in n for n in plain.comparison.notes)
