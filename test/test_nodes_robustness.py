@@ -230,6 +230,8 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
         ("band", "q", "band"),
         ("n_modes", 0, "out of range"),
         ("kp", 1.5, "out of range"),
+        ("kp", -0.1, "out of range"),
+        ("ki", -0.01, "out of range"),
         ("weights", "nonsense", "not found"),
     ]:
         (res,) = ofc.set_parameters([Parameter(name, value=value)])

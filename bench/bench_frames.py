@@ -1,0 +1,304 @@
+#!/usr/bin/env python
+"""Donut selection from corner half-chip frames, several pairs per corner, uncertainties.
+
+Ray-traces random rigid-body perturbations of LSST (M2 and camera hexapods, 300-900 nm of
+total wavefront at the corners), and for each renders the two half-chip frames of one corner
+(default R00, 1000 x 2000 px each, focal-plane orientation) with 3-6 isolated donuts of
+log-uniform brightness at their own field angles, plus one blended pair and one too-faint
+star per frame, sky 50 e-/px and Poisson noise (cwfs_ros.sim.frames). Each corner is then
+processed from its frames (cwfs_ros.core.selection.estimate_corner_frames) and reports:
+
+  selection   blended/faint stars rejected (and with which reason), isolated stars accepted,
+              detected positions against the injected chief rays
+  accuracy    RMS error over Z4..Z22 against the truth at the corner's reference field
+              (cwfs_ros.sim.true_zernikes_nm), for the brightest single pair and for all pairs
+  timing      ms per corner frame pair, detection included, one BLAS thread: "cold" (new star
+              fields: the estimator builds a geometry per pair) and "warm" (same frames again)
+  calibration fraction of |error| < 1 sigma over terms x trials, single pair and combined
+
+The first --calib-trials trials fit the per-pair noise model (sigma_j^2 = (c_j q)^2 + f_j^2,
+cwfs_ros.core.combination.fit_noise_model) against the truth; the remaining trials are
+evaluated with it (independent seeds). --write-config stores the fit in config/selection.yaml
+(combination.noise_model.<solver>).
+
+Usage: .venv/bin/python bench/bench_frames.py [--trials 16] [--calib-trials 14] [--solver lsq]
+       [--write-config]   (the defaults are the reported run: ~8 min on 2 shared cores)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+from cwfs_ros.core.combination import (  # noqa: E402
+    CombinationConfig,
+    combine_pairs,
+    fit_noise_model,
+)
+from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
+from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.core.selection import (  # noqa: E402
+    estimate_corner_frames,
+    load_selection_config,
+)
+from cwfs_ros.paths import config_dir  # noqa: E402
+from cwfs_ros.sim.frames import random_stars, render_frame  # noqa: E402
+from cwfs_ros.sim.render import true_zernikes_nm  # noqa: E402
+from cwfs_ros.sim.telescope import load_lsst, perturbed_telescope  # noqa: E402
+
+SCALE = np.array([8, 150, 150, 0.005, 0.005, 8, 150, 150, 0.005, 0.005])
+WL = 622.0
+
+
+def rms(v: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(v))))
+
+
+def draw_telescope(rng: np.random.Generator, mid: tuple[float, float]):
+    while True:
+        dof = np.zeros(50)
+        dof[:10] = rng.normal(0, 1, 10) * SCALE
+        tel = perturbed_telescope(dof, band="r")
+        tot = float(np.sqrt(np.sum(true_zernikes_nm(tel, mid, wavelength_nm=WL) ** 2)))
+        if 300 <= tot <= 900:
+            return tel, tot
+
+
+def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
+    rng = np.random.default_rng(args.seed + 1000 * k)
+    ref = halves["intra"].mid_deg
+    tel, tot = draw_telescope(rng, ref)
+    shape = (args.rows, args.cols)
+    t0 = time.perf_counter()
+    frames = {}
+    for side in ("intra", "extra"):
+        h = halves[side]
+        stars = random_stars(rng, shape, n_good=(args.min_stars, args.max_stars),
+                             flux_range=(args.flux_min, args.flux_max), blend=True, faint=True,
+                             faint_flux=args.faint_flux)
+        frames[side] = render_frame(tel, stars, field_ref_deg=h.field_deg,
+                                    detector_offset_mm=h.detector_offset_mm, shape_px=shape,
+                                    sky_per_pixel=args.sky, rng=rng)
+    t_render = time.perf_counter() - t0
+    with threadpool_limits(1):
+        cold = estimate_corner_frames(frames["intra"].image, frames["extra"].image,
+                                      corner=args.corner, settings=settings, config=sel_cfg)
+        warm = estimate_corner_frames(frames["intra"].image, frames["extra"].image,
+                                      corner=args.corner, settings=settings, config=sel_cfg)
+    res = warm
+    truth_ref = true_zernikes_nm(tel, ref, wavelength_nm=WL)
+    # Selection outcome per injected star: the nearest detection within 40 px.
+    sel = {"blend_rejected": 0, "blend": 0, "faint_rejected": 0, "faint": 0, "good": 0,
+           "good_accepted": 0, "pos_err": [], "reasons": {}}
+    for side in ("intra", "extra"):
+        dets = res.detections[side]
+        for s in frames[side].stars:
+            near = [d for d in dets if np.hypot(d.x - s.x, d.y - s.y) < 40.0]
+            acc = [d for d in near if d.ok]
+            kind = "blend" if "blend" in s.flags else "faint" if "faint" in s.flags else "good"
+            sel[kind] += 1
+            if kind == "good":
+                if acc:
+                    sel["good_accepted"] += 1
+                    d = min(acc, key=lambda d: np.hypot(d.x - s.x, d.y - s.y))
+                    sel["pos_err"].append(float(np.hypot(d.x - s.x, d.y - s.y)))
+            else:
+                # Blend partners may be merged into one detection, or undetected: rejected
+                # means no accepted detection near the injected star.
+                if not acc:
+                    sel[f"{kind}_rejected"] += 1
+                for d in near:
+                    if not d.ok:
+                        sel["reasons"][f"{kind}:{d.status}"] = sel["reasons"].get(
+                            f"{kind}:{d.status}", 0) + 1
+    pairs = []
+    for p in res.pairs:
+        if p.status != "ok":
+            continue
+        t_mid = true_zernikes_nm(tel, p.field_mid_deg, wavelength_nm=WL)
+        d_mid = true_zernikes_nm(nominal, p.field_mid_deg, wavelength_nm=WL)
+        pairs.append({"departure": p.departure_nm, "q": p.noise_scale,
+                      "truth_departure_mid": t_mid - d_mid, "snr": (p.snr_intra, p.snr_extra)})
+    design_ref = true_zernikes_nm(nominal, ref, wavelength_nm=WL)
+    return {"k": k, "tot": tot, "render_s": t_render, "cold_ms": cold.timing_ms,
+            "warm_ms": warm.timing_ms, "n_pairs": res.n_pairs, "status": res.status,
+            "pair_status": [p.status for p in res.pairs], "sel": sel, "pairs": pairs,
+            "truth_ref": truth_ref, "design_ref": design_ref,
+            "truth_departure_ref": truth_ref - design_ref}
+
+
+def evaluate(trials: list[dict], comb: CombinationConfig) -> dict:
+    one, many, z1, zn, n_used, unc1, uncn = [], [], [], [], [], [], []
+    for t in trials:
+        ps = t["pairs"]
+        if not ps:
+            continue
+        dep = np.array([p["departure"] for p in ps])
+        q = np.array([p["q"] for p in ps])
+        c1 = combine_pairs(dep[:1], q[:1], design_ref_nm=t["design_ref"], config=comb)
+        cn = combine_pairs(dep, q, design_ref_nm=t["design_ref"], config=comb)
+        e1, en = c1.zernikes_nm - t["truth_ref"], cn.zernikes_nm - t["truth_ref"]
+        one.append(rms(e1))
+        many.append(rms(en))
+        n_used.append(cn.n_pairs)
+        z1.append(np.abs(e1) / c1.uncertainty_nm)
+        zn.append(np.abs(en) / cn.uncertainty_nm)
+        unc1.append(np.median(c1.uncertainty_nm))
+        uncn.append(np.median(cn.uncertainty_nm))
+    z1a, zna = np.concatenate(z1), np.concatenate(zn)
+    return {"rms_1": np.array(one), "rms_n": np.array(many), "n_used": np.array(n_used),
+            "cal_1": float(np.mean(z1a < 1.0)), "cal_n": float(np.mean(zna < 1.0)),
+            "cal2_1": float(np.mean(z1a < 2.0)), "cal2_n": float(np.mean(zna < 2.0)),
+            "unc_1": float(np.median(unc1)), "unc_n": float(np.median(uncn)),
+            "n_terms": int(zna.size)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=16, help="evaluation trials")
+    ap.add_argument("--calib-trials", type=int, default=14, help="noise-model fit trials")
+    ap.add_argument("--solver", default="lsq")
+    ap.add_argument("--corner", default="R00")
+    ap.add_argument("--rows", type=int, default=2000)
+    ap.add_argument("--cols", type=int, default=1000)
+    ap.add_argument("--min-stars", type=int, default=3)
+    ap.add_argument("--max-stars", type=int, default=6)
+    ap.add_argument("--flux-min", type=float, default=2e5)
+    ap.add_argument("--flux-max", type=float, default=1e6)
+    ap.add_argument("--faint-flux", type=float, default=1.2e4)
+    ap.add_argument("--sky", type=float, default=50.0)
+    ap.add_argument("--max-pairs", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=20261126)
+    ap.add_argument("--write-config", action="store_true",
+                    help="store the fitted noise model in config/selection.yaml")
+    a = ap.parse_args()
+    halves = load_half_chips()[a.corner]
+    settings = EstimatorSettings(solver=a.solver)
+    sel_cfg = load_selection_config(solver=a.solver, max_pairs=a.max_pairs)
+    nominal = load_lsst("r")
+    n_all = a.calib_trials + a.trials
+    print(f"corner {a.corner}, frames {a.cols}x{a.rows} px, {a.min_stars}-{a.max_stars} "
+          f"isolated donuts of {a.flux_min:.0e}-{a.flux_max:.0e} photons + 1 blend + 1 faint "
+          f"({a.faint_flux:.0e}) per frame, sky {a.sky:g}/px, solver {a.solver}, "
+          f"up to {a.max_pairs} pairs; {a.calib_trials} calibration + {a.trials} evaluation "
+          "trials", flush=True)
+    trials = []
+    t0 = time.perf_counter()
+    for k in range(n_all):
+        t = run_trial(k, a, halves, settings, sel_cfg, nominal)
+        trials.append(t)
+        print(f"  trial {k:2d}: {t['tot']:4.0f} nm total, {len(t['pairs'])} ok pairs "
+              f"({','.join(t['pair_status'])}), cold {t['cold_ms']['total']:6.0f} ms, warm "
+              f"{t['warm_ms']['total']:5.0f} ms (detect {t['warm_ms']['detect']:4.0f}), "
+              f"render {t['render_s']:4.0f} s", flush=True)
+    print(f"total wall time {time.perf_counter() - t0:.0f} s")
+
+    # -- selection
+    sel = {k: sum(t["sel"][k] for t in trials) for k in
+           ("blend", "blend_rejected", "faint", "faint_rejected", "good", "good_accepted")}
+    reasons: dict[str, int] = {}
+    for t in trials:
+        for r, n in t["sel"]["reasons"].items():
+            reasons[r] = reasons.get(r, 0) + n
+    pos = np.concatenate([t["sel"]["pos_err"] for t in trials])
+    print("\nselection (all trials):")
+    print(f"  blended stars rejected  {sel['blend_rejected']}/{sel['blend']}")
+    print(f"  faint stars rejected    {sel['faint_rejected']}/{sel['faint']}")
+    print(f"  isolated stars accepted {sel['good_accepted']}/{sel['good']}")
+    print(f"  rejection reasons       {dict(sorted(reasons.items()))}")
+    print(f"  centroid - injected chief ray: median {np.median(pos):.2f} px, max "
+          f"{pos.max():.2f} px")
+
+    # -- timing
+    cold = np.array([t["cold_ms"]["total"] for t in trials])
+    warm = np.array([t["warm_ms"]["total"] for t in trials])
+    det = np.array([t["warm_ms"]["detect"] for t in trials])
+    est = np.array([t["warm_ms"]["estimate"] for t in trials])
+    npairs = np.array([len(t["pair_status"]) for t in trials])
+    print("\ntiming per corner (two frames, one BLAS thread), median over trials:")
+    print(f"  cold (new star fields) {np.median(cold):7.0f} ms   (max {cold.max():.0f})")
+    print(f"  warm (geometry cached) {np.median(warm):7.0f} ms   (max {warm.max():.0f}); "
+          f"detection {np.median(det):.0f} ms, estimates {np.median(est):.0f} ms for "
+          f"{np.median(npairs):.0f} pairs ({np.median(est / np.maximum(npairs, 1)):.0f} "
+          "ms/pair)")
+    four = npairs == 4
+    if four.any():
+        print(f"  4-pair corners: warm {np.median(warm[four]):.0f} ms, cold "
+              f"{np.median(cold[four]):.0f} ms (n={int(four.sum())})")
+
+    # -- noise model from the calibration trials
+    cal, ev = trials[:a.calib_trials], trials[a.calib_trials:]
+    errs = np.array([p["departure"] - p["truth_departure_mid"] for t in cal for p in t["pairs"]])
+    qs = np.array([p["q"] for t in cal for p in t["pairs"]])
+    c, f = fit_noise_model(errs, qs)
+    # Field-dependence: how much the departure from design differs between the pairs'
+    # mid-points and the reference field (a bias of reporting the combination there).
+    fd = np.array([rms(p["truth_departure_mid"] - t["truth_departure_ref"])
+                   for t in trials for p in t["pairs"]])
+    print(f"\nnoise model fitted on {len(errs)} calibration pairs: c_j (nm per unit q) median "
+          f"{np.median(c):.0f} [{c.min():.0f}..{c.max():.0f}], floor f_j median "
+          f"{np.median(f):.1f} [{f.min():.1f}..{f.max():.1f}] nm; median q "
+          f"{np.median(qs):.4f}")
+    print(f"  truth departure at pair mid-point vs reference field: rms median "
+          f"{np.median(fd):.2f} nm, max {fd.max():.2f} nm")
+    base = load_selection_config(solver=a.solver).combination
+    fitted = base.with_overrides(noise_coefficient_nm=tuple(c), pair_floor_nm=tuple(f),
+                                 common_floor_nm=0.0)
+    # Common floor: what the combined error of the calibration trials has beyond the
+    # combination's own uncertainty (errors shared by all pairs of a corner do not average).
+    e2, s2 = [], []
+    for t in cal:
+        if len(t["pairs"]) < 2:
+            continue
+        dep = np.array([p["departure"] for p in t["pairs"]])
+        cn = combine_pairs(dep, np.array([p["q"] for p in t["pairs"]]),
+                           design_ref_nm=t["design_ref"], config=fitted)
+        e2.append((cn.zernikes_nm - t["truth_ref"]) ** 2)
+        s2.append(cn.uncertainty_nm ** 2)
+    g = np.sqrt(np.maximum(np.mean(e2, axis=0) - np.mean(s2, axis=0), 0.0)) if e2 else \
+        np.zeros(len(c))
+    fitted = fitted.with_overrides(common_floor_nm=tuple(g))
+    print(f"  common floor g_j (from {len(e2)} combined calibration corners) median "
+          f"{np.median(g):.1f} [{g.min():.1f}..{g.max():.1f}] nm")
+    for name, comb in (("config", base), ("fitted", fitted)):
+        r = evaluate(ev, comb)
+        print(f"\naccuracy and calibration on {len(ev)} evaluation trials, noise model "
+              f"'{name}':")
+        print(f"  RMS error vs truth at the reference field: 1 pair  median "
+              f"{np.median(r['rms_1']):5.1f}  mean {np.mean(r['rms_1']):5.1f} nm")
+        print(f"                                           N pairs median "
+              f"{np.median(r['rms_n']):5.1f}  mean {np.mean(r['rms_n']):5.1f} nm  "
+              f"(N = {np.mean(r['n_used']):.1f} on average)")
+        print(f"  N pairs better than 1 pair in {np.mean(r['rms_n'] < r['rms_1']):.0%} of trials")
+        print(f"  |error| < 1 sigma: 1 pair {r['cal_1']:.0%}, N pairs {r['cal_n']:.0%} "
+              f"(< 2 sigma: {r['cal2_1']:.0%}, {r['cal2_n']:.0%}; {r['n_terms']} terms); median "
+              f"sigma {r['unc_1']:.1f} / {r['unc_n']:.1f} nm")
+    if a.write_config:
+        path = config_dir() / "selection.yaml"
+        text = path.read_text()
+        old = (yaml.safe_load(text).get("combination") or {}).get("noise_model") or {}
+        fit = {"noise_coefficient_nm": [round(float(v), 1) for v in c],
+               "pair_floor_nm": [round(float(v), 2) for v in f],
+               "common_floor_nm": [round(float(v), 2) for v in g]}
+        block = {**old, a.solver: fit}
+        marker = "  # Fitted by bench/bench_frames.py"
+        dumped = yaml.safe_dump({"noise_model": block}, default_flow_style=None, width=95)
+        dumped = "".join("  " + line + "\n" for line in dumped.splitlines())
+        if marker in text:  # replace an earlier fit (always the file's last block)
+            text = text[:text.index(marker)]
+        text = text.rstrip("\n") + "\n" + (
+            f"  # Fitted by bench/bench_frames.py (last: {a.solver}, {len(errs)} pairs, "
+            f"{a.calib_trials} trials, seed {a.seed}).\n") + dumped
+        path.write_text(text)
+        print(f"\nwrote the fitted noise model for {a.solver!r} to {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,234 @@
+"""Combining the wavefront estimates of several star pairs into one corner result.
+
+With several donuts per half-chip (paper Fig. 2 caption: the strategy "is currently under
+investigation"), each intra/extra pair gives an estimate of the total wavefront at its own
+mid-point field (§3.4: the design part there is added back).  The pairs sit at slightly
+different fields, and the design wavefront varies across a half-chip by several nm, so the
+pairs are combined on their *departure from design*, ``z_k - intrinsic_k``, which the
+telescope's perturbation makes nearly uniform across a half-chip; the design wavefront at the
+corner's reference field is then added back once.
+
+Noise model (per pair k, per Zernike term j)::
+
+    sigma_kj^2 = (c_j q_k)^2 + f_j^2,   q_k = sqrt(1/SNR_intra^2 + 1/SNR_extra^2)
+
+``c_j`` (nm) is the photon-noise response of term j (the TIE is linear in the intensity
+difference, §2.1, whose noise scales as 1/SNR), ``f_j`` (nm) a per-pair floor (model errors
+that differ between stars).  Both come from ``config/selection.yaml``, fitted on simulations
+by :func:`fit_noise_model`.  The combination is the inverse-variance weighted mean after
+outlier rejection; its uncertainty is the noise model's, rescaled by the observed scatter
+between pairs (shrunk towards the model for few pairs), plus a common floor ``g_j`` that
+averaging cannot reduce.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .errors import ConfigError
+
+__all__ = ["CombinationConfig", "CombinedEstimate", "combine_pairs", "fit_noise_model",
+           "pair_noise_scale", "N_TERMS"]
+
+N_TERMS = 19  # Z4..Z22
+
+
+def _vec(v: object, name: str) -> tuple[float, ...]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.size == 1:
+        a = np.full(N_TERMS, float(a[0]))
+    if a.shape != (N_TERMS,) or not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise ConfigError(f"combination: {name} must be one number or {N_TERMS} numbers "
+                          f">= 0 (Z4..Z22, nm), got {v!r}")
+    return tuple(float(x) for x in a)
+
+
+@dataclass(frozen=True)
+class CombinationConfig:
+    """Parameters of the pair combination (``config/selection.yaml``, ``combination``).
+
+    Attributes:
+        noise_coefficient_nm: c_j, nm per unit of the noise scale q (19 values or one).
+        pair_floor_nm: f_j, per-pair error floor (nm).
+        common_floor_nm: g_j, error common to all pairs of a corner (nm), added to the
+            combined uncertainty.
+        clip_sigma: a term of a pair further than this many sigma from the others' robust
+            centre is dropped from that term's mean.
+        pair_clip: a pair whose robust rms normalised residual over the terms (median |r| /
+            0.6745) exceeds this is dropped entirely (a bad stamp spoils every term).
+        prior_dof: weight, in pairs, of the noise model against the observed scatter when
+            estimating the uncertainty (0 = scatter only, for n >= 2).
+        max_iter: outlier-rejection passes.
+    """
+
+    noise_coefficient_nm: tuple[float, ...] = (2000.0,) * N_TERMS
+    pair_floor_nm: tuple[float, ...] = (5.0,) * N_TERMS
+    common_floor_nm: tuple[float, ...] = (0.0,) * N_TERMS
+    clip_sigma: float = 4.0
+    pair_clip: float = 3.0
+    prior_dof: float = 3.0
+    max_iter: int = 3
+
+    def __post_init__(self) -> None:
+        for name in ("noise_coefficient_nm", "pair_floor_nm", "common_floor_nm"):
+            object.__setattr__(self, name, _vec(getattr(self, name), name))
+        for name in ("clip_sigma", "pair_clip"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ConfigError(f"combination: {name} must be > 0, got {v!r}")
+        if not (isinstance(self.prior_dof, (int, float)) and self.prior_dof >= 0):
+            raise ConfigError(f"combination: prior_dof must be >= 0, got {self.prior_dof!r}")
+        if not isinstance(self.max_iter, int) or self.max_iter < 1:
+            raise ConfigError(f"combination: max_iter must be an integer >= 1, got "
+                              f"{self.max_iter!r}")
+
+    def with_overrides(self, **kw: object) -> CombinationConfig:
+        return replace(self, **kw)
+
+
+def pair_noise_scale(snr_intra: float, snr_extra: float) -> float:
+    """q = sqrt(1/SNR_intra^2 + 1/SNR_extra^2): the relative noise of the intensity
+    difference the TIE is solved for (both images contribute; §3.4 normalises each)."""
+    return float(np.sqrt(1.0 / max(snr_intra, 1e-9) ** 2 + 1.0 / max(snr_extra, 1e-9) ** 2))
+
+
+@dataclass(frozen=True)
+class CombinedEstimate:
+    """Result of :func:`combine_pairs`.
+
+    Attributes:
+        zernikes_nm: (19,) combined Z4..Z22 (nm) at the reference field (NaN if no pair).
+        uncertainty_nm: (19,) one-sigma uncertainty per term (nm).
+        n_pairs: pairs that contributed to at least one term.
+        used: (n,) bool, pair k contributed (not rejected as an outlier pair).
+        term_used: (n, 19) bool, pair k contributed to term j.
+        pair_chi: (n,) robust rms normalised residual of each pair over the terms.
+    """
+
+    zernikes_nm: np.ndarray
+    uncertainty_nm: np.ndarray
+    n_pairs: int
+    used: np.ndarray
+    term_used: np.ndarray
+    pair_chi: np.ndarray
+
+
+def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
+                  design_ref_nm: np.ndarray | None = None,
+                  config: CombinationConfig | None = None) -> CombinedEstimate:
+    """Combine per-pair departures from design into one estimate with uncertainties.
+
+    Args:
+        departure_nm: (n, 19) per-pair ``zernikes_nm - intrinsic_nm`` (nm): the non-design
+            part of each pair's wavefront at its own mid-point field.
+        noise_scale: (n,) q of each pair (:func:`pair_noise_scale`).
+        design_ref_nm: (19,) design wavefront at the reference field (nm), added to the
+            combined departure (zeros if None).
+        config: the noise model and clipping parameters.
+
+    Returns:
+        A :class:`CombinedEstimate`.  With no pair, NaN values and ``n_pairs == 0``.
+    """
+    cfg = config or CombinationConfig()
+    d = np.asarray(departure_nm, dtype=np.float64).reshape(-1, N_TERMS)
+    q = np.asarray(noise_scale, dtype=np.float64).reshape(-1)
+    if q.shape[0] != d.shape[0]:
+        raise ValueError(f"{d.shape[0]} pairs but {q.shape[0]} noise scales")
+    n = d.shape[0]
+    design = (np.zeros(N_TERMS) if design_ref_nm is None
+              else np.asarray(design_ref_nm, dtype=np.float64).reshape(N_TERMS))
+    c = np.asarray(cfg.noise_coefficient_nm)
+    f = np.asarray(cfg.pair_floor_nm)
+    g = np.asarray(cfg.common_floor_nm)
+    if n == 0:
+        nan = np.full(N_TERMS, np.nan)
+        return CombinedEstimate(nan, nan.copy(), 0, np.zeros(0, bool), np.zeros((0, N_TERMS),
+                                bool), np.zeros(0))
+    sig = np.sqrt((c[None, :] * q[:, None]) ** 2 + f[None, :] ** 2)  # (n, 19)
+    sig = np.maximum(sig, 1e-6)
+    finite = np.all(np.isfinite(d), axis=1)
+    used = finite.copy()
+    term_used = np.repeat(used[:, None], N_TERMS, axis=1)
+    chi = np.zeros(n)
+    if used.sum() >= 3:
+        for _ in range(cfg.max_iter):
+            # Robust centre: the median of the pairs still in (a planted outlier cannot drag
+            # it, unlike the mean); residuals in units of each pair's expected error.
+            centre = np.array([np.median(d[term_used[:, j], j]) if term_used[:, j].any()
+                               else 0.0 for j in range(N_TERMS)])
+            r = (d - centre[None, :]) / sig
+            r[~finite] = np.inf
+            # Robust rms over the terms (median |r| / 0.6745): one wild term is clipped on
+            # its own below, it must not throw out the pair's other 18.
+            chi = np.median(np.abs(np.where(np.isfinite(r), r, 1e6)), axis=1) / 0.6745
+            new_used = finite & (chi <= cfg.pair_clip)
+            if new_used.sum() < 2:  # keep the two most consistent pairs rather than none
+                keep = np.argsort(chi)[:2]
+                new_used = np.zeros(n, bool)
+                new_used[keep] = finite[keep]
+            new_term = new_used[:, None] & (np.abs(r) <= cfg.clip_sigma)
+            # Never drop a term below two pairs because of the clipping.
+            for j in range(N_TERMS):
+                if new_term[:, j].sum() < min(2, new_used.sum()):
+                    new_term[:, j] = new_used
+            if np.array_equal(new_used, used) and np.array_equal(new_term, term_used):
+                break
+            used, term_used = new_used, new_term
+    w = np.where(term_used, 1.0 / sig ** 2, 0.0)
+    wsum = w.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(wsum > 0, (w * np.where(term_used, d, 0.0)).sum(axis=0) / wsum, np.nan)
+        var_model = np.where(wsum > 0, 1.0 / wsum, np.nan)
+        nj = term_used.sum(axis=0)
+        resid2 = (w * np.where(term_used, d - mean[None, :], 0.0) ** 2).sum(axis=0)
+        chi2 = np.where(nj > 1, resid2 / np.maximum(nj - 1, 1), 1.0)
+        # Shrink the observed reduced chi^2 towards 1 (the model) with prior_dof pairs of
+        # weight: with 2-3 pairs the sample scatter alone is too noisy to be the error bar.
+        dof = np.maximum(nj - 1, 0)
+        scale2 = (cfg.prior_dof + dof * chi2) / np.maximum(cfg.prior_dof + dof, 1e-12)
+    unc = np.sqrt(var_model * scale2 + g ** 2)
+    z = mean + design
+    if not used.any():
+        z = np.full(N_TERMS, np.nan)
+        unc = np.full(N_TERMS, np.nan)
+    return CombinedEstimate(z, unc, int(used.sum()), used, term_used, chi)
+
+
+def fit_noise_model(errors_nm: np.ndarray, noise_scale: np.ndarray,
+                    clip: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """Fit ``E[err_kj^2] = f_j^2 + c_j^2 q_k^2`` to single-pair errors against the truth.
+
+    Args:
+        errors_nm: (m, 19) single-pair departure errors (estimate minus truth, nm).
+        noise_scale: (m,) q of each pair.
+        clip: errors beyond ``clip`` times the fitted sigma are dropped and the fit redone
+            (caustics or blends the selection missed would otherwise set the floor).
+
+    Returns:
+        ``(c, f)``: (19,) noise coefficients and per-pair floors, nm.
+    """
+    e = np.asarray(errors_nm, dtype=np.float64).reshape(-1, N_TERMS)
+    q = np.asarray(noise_scale, dtype=np.float64).reshape(-1)
+    ok = np.all(np.isfinite(e), axis=1) & np.isfinite(q)
+    e, q = e[ok], q[ok]
+    c = np.zeros(N_TERMS)
+    f = np.zeros(N_TERMS)
+    if e.shape[0] < 3:
+        raise ValueError("need at least 3 pairs to fit the noise model")
+    a = np.stack([np.ones_like(q), q * q], axis=1)
+    for j in range(N_TERMS):
+        keep = np.ones(e.shape[0], bool)
+        for _ in range(3):
+            coef, *_ = np.linalg.lstsq(a[keep], e[keep, j] ** 2, rcond=None)
+            f2, c2 = max(float(coef[0]), 0.0), max(float(coef[1]), 0.0)
+            if f2 == 0.0 and c2 == 0.0:
+                f2 = float(np.mean(e[keep, j] ** 2))
+            s = np.sqrt(f2 + c2 * q * q)
+            new = np.abs(e[:, j]) <= clip * s
+            if np.array_equal(new, keep) or new.sum() < 3:
+                break
+            keep = new
+        c[j], f[j] = np.sqrt(c2), np.sqrt(f2)
+    return c, f

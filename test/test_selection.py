@@ -1,0 +1,275 @@
+"""Donut selection from half-chip frames, star fields, pairing and pair combination.
+
+Small ray-traced frames (cwfs_ros.sim.frames) with stars at known pixel positions: isolated
+donuts must be found where they were injected; a blended pair, a too-faint star, a star cut
+by the frame edge and a saturated star must be rejected with their reasons.  The field of a
+pixel is checked against batoid chief rays traced here; the combination against synthetic
+per-pair estimates with planted outliers.  Expected values never come from the code under test.
+"""
+
+from __future__ import annotations
+
+import batoid
+import numpy as np
+import pytest
+
+from cwfs_ros.core.combination import CombinationConfig, combine_pairs, pair_noise_scale
+from cwfs_ros.core.corner_pool import EstimatorSettings
+from cwfs_ros.core.detection import (
+    DetectionConfig,
+    detect_donuts,
+    estimate_background,
+    expected_donut_radii_px,
+)
+from cwfs_ros.core.field_position import half_chip_model, load_half_chips
+from cwfs_ros.core.instrument import load_instrument
+from cwfs_ros.core.selection import (
+    CornerFrameJob,
+    SelectionConfig,
+    StarStamp,
+    estimate_corner_frames,
+    pair_stars,
+    run_corner_frame_job,
+    select_stamps,
+)
+from cwfs_ros.sim.frames import StarSpec, render_frame
+from cwfs_ros.sim.telescope import perturbed_telescope
+
+SHAPE = (1000, 900)  # rows, cols
+SKY = 20.0
+FULL_WELL = 90.0
+GOOD = [StarSpec(200.0, 200.0, 1.6e5), StarSpec(690.0, 215.0, 1.0e5)]
+BLEND = [StarSpec(210.0, 640.0, 1.2e5, ("blend",)), StarSpec(275.0, 680.0, 1.2e5, ("blend",))]
+FAINT = StarSpec(690.0, 600.0, 1.0e4, ("faint",))
+EDGE = StarSpec(470.0, 985.0, 1.0e5, ("edge",))
+SATURATED = StarSpec(470.0, 420.0, 4.5e5, ("saturated",))
+
+
+def _config() -> SelectionConfig:
+    # The saturation level of these small test frames: the simulated full well.
+    return SelectionConfig(detection=DetectionConfig(saturation_level=FULL_WELL))
+
+
+@pytest.fixture(scope="module")
+def telescope():
+    dof = np.zeros(50)
+    dof[:10] = [10.0, 120.0, -80.0, 0.003, -0.002, -6.0, 90.0, 60.0, -0.002, 0.004]
+    return perturbed_telescope(dof, band="r")
+
+
+@pytest.fixture(scope="module")
+def halves():
+    return load_half_chips()["R00"]
+
+
+@pytest.fixture(scope="module")
+def intra_frame(telescope, halves):
+    h = halves["intra"]
+    stars = [*GOOD, *BLEND, FAINT, EDGE, SATURATED]
+    return render_frame(telescope, stars, field_ref_deg=h.field_deg,
+                        detector_offset_mm=h.detector_offset_mm, shape_px=SHAPE,
+                        sky_per_pixel=SKY, full_well_e=FULL_WELL,
+                        rng=np.random.default_rng(7))
+
+
+@pytest.fixture(scope="module")
+def extra_frame(telescope, halves):
+    h = halves["extra"]
+    stars = [StarSpec(230.0, 260.0, 1.4e5), StarSpec(640.0, 700.0, 1.1e5)]
+    return render_frame(telescope, stars, field_ref_deg=h.field_deg,
+                        detector_offset_mm=h.detector_offset_mm, shape_px=SHAPE,
+                        sky_per_pixel=SKY, full_well_e=FULL_WELL,
+                        rng=np.random.default_rng(8))
+
+
+@pytest.fixture(scope="module")
+def intra_selection(intra_frame, halves):
+    return select_stamps(intra_frame.image, halves["intra"], config=_config())
+
+
+def _near(dets, star, radius=40.0):
+    return [d for d in dets if np.hypot(d.x - star.x, d.y - star.y) < radius]
+
+
+def test_isolated_donuts_found_at_injected_positions(intra_selection, intra_frame):
+    stamps, dets, _ = intra_selection
+    ok = [d for d in dets if d.ok]
+    assert len(ok) == len(GOOD)
+    for star in GOOD:
+        found = _near(ok, star)
+        assert len(found) == 1, f"no accepted donut near {star}"
+        # Centroid vs injected chief ray: vignetting moves the centroid by < 1 px here,
+        # the perturbation's coma by about as much.
+        assert np.hypot(found[0].x - star.x, found[0].y - star.y) < 2.5
+    # Stamps: the estimator's size, centred on the donut, sky subtracted.
+    assert all(s.stamp.shape == (160, 160) for s in stamps)
+    for s in stamps:
+        border = np.concatenate([s.stamp[:3].ravel(), s.stamp[-3:].ravel()])
+        assert abs(np.median(border)) < 0.1 * SKY
+
+
+def test_blend_faint_edge_saturated_rejected_with_reason(intra_selection):
+    _, dets, _ = intra_selection
+    for star, reason in ((BLEND[0], "blended"), (BLEND[1], "blended"), (FAINT, "too_faint"),
+                         (EDGE, "donut_cut_by_edge"), (SATURATED, "saturated")):
+        near = _near(dets, star, 70.0 if "edge" in star.flags else 40.0)
+        assert near, f"{star.flags} star not detected at all"
+        assert not any(d.ok for d in near), f"{star.flags} star accepted"
+        assert any(d.status == reason for d in near), [d.status for d in near]
+        assert all(d.message for d in near)
+
+
+def test_background_follows_a_gradient():
+    rng = np.random.default_rng(3)
+    rows, cols = 600, 800
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    sky = 40.0 + 0.02 * xx + 0.01 * yy  # 40 .. 62 e-/px
+    frame = rng.poisson(sky).astype(float)
+    bg = estimate_background(frame)
+    model = bg.level(0, 0, cols, rows)
+    inner = (slice(128, rows - 128), slice(128, cols - 128))  # between mesh-cell centres
+    assert np.max(np.abs(model[inner] - sky[inner])) < 0.6
+    assert abs(bg.noise - np.sqrt(50.0)) < 0.5
+    inst = load_instrument("lsst")
+    r_out, r_in = expected_donut_radii_px(inst)
+    dets, _ = detect_donuts(frame, outer_radius_px=r_out, inner_radius_px=r_in, stamp_px=160)
+    assert dets == []
+
+
+def test_expected_donut_radius_from_f_number():
+    inst = load_instrument("lsst")
+    r_out, r_in = expected_donut_radii_px(inst)
+    # f/1.2335 at 1.5 mm: marginal ray at asin(1 / 2.467) = 23.9 deg, 1.5 mm * tan = 0.665 mm.
+    assert r_out == pytest.approx(1.5e3 * np.tan(np.arcsin(8.36 / 2 / 10.312)) / 10.0, rel=1e-9)
+    assert 66.0 < r_out < 67.0
+    assert r_in == pytest.approx(0.61 * r_out)
+
+
+def test_field_of_pixel_matches_traced_chief_ray(halves):
+    h = halves["intra"]
+    model = half_chip_model(h, shape_px=SHAPE)
+    ref = ((SHAPE[1] - 1) / 2.0, (SHAPE[0] - 1) / 2.0)
+    tel = batoid.Optic.fromYaml("LSST_r.yaml")
+    tel = tel.withGloballyShiftedOptic("Detector", [0.0, 0.0, -1.5e-3])
+
+    def hit(fx, fy):
+        rv = batoid.RayVector.fromStop(np.zeros(1), np.zeros(1), optic=tel,
+                                       wavelength=622e-9, theta_x=np.deg2rad(fx),
+                                       theta_y=np.deg2rad(fy))
+        out = tel.trace(rv)
+        return np.array([out.x[0], out.y[0]])
+
+    h0 = hit(*h.field_deg)
+    for px in ((0.0, 0.0), (899.0, 999.0), (120.5, 870.25), (ref[0], ref[1])):
+        fx, fy = model.field_of_pixel(*px)
+        landed = (hit(float(fx), float(fy)) - h0) / 10e-6
+        assert np.allclose(landed, np.array(px) - ref, atol=0.01), (px, landed)
+    # Plate scale: 10 um at f = 10.31 m is 0.200 arcsec (distortion at 1.7 deg: < 0.5 %).
+    fx, _ = model.field_of_pixel(ref[0] + 500.0, ref[1])
+    assert (float(fx) - h.field_deg[0]) * 3600 / 500 == pytest.approx(
+        np.rad2deg(10e-6 / 10.312) * 3600, rel=5e-3)
+
+
+def test_star_field_matches_injected(intra_selection, intra_frame):
+    stamps, _, _ = intra_selection
+    truth = {(s.x, s.y): s for s in intra_frame.stars}
+    for st in stamps:
+        s = min(truth.values(), key=lambda s: np.hypot(s.x - st.donut.x, s.y - st.donut.y))
+        err_arcsec = np.hypot(st.field_deg[0] - s.field_deg[0],
+                              st.field_deg[1] - s.field_deg[1]) * 3600
+        assert err_arcsec < 0.5  # 2.5 px
+        # ... and it is the star's own field, not the half-chip's.
+        assert np.hypot(*np.subtract(st.field_deg, load_half_chips()["R00"]["intra"].field_deg)
+                        ) > 0.01
+
+
+def test_combination_rejects_planted_outliers():
+    rng = np.random.default_rng(11)
+    n = 6
+    truth = np.linspace(-40, 40, 19)
+    cfg = CombinationConfig(noise_coefficient_nm=1000.0, pair_floor_nm=2.0)
+    q = np.full(n, 0.005)  # sigma = sqrt(5^2 + 2^2) = 5.39 nm per term
+    sigma = np.sqrt(5.0 ** 2 + 2.0 ** 2)
+    d = truth + rng.normal(0, sigma, (n, 19))
+    d[2] += 120.0          # a bad pair: every term off
+    d[4, 7] += 90.0        # one bad term of a good pair
+    design = np.full(19, 3.0)
+    r = combine_pairs(d, q, design_ref_nm=design, config=cfg)
+    assert r.used.tolist() == [True, True, False, True, True, True]
+    assert r.n_pairs == 5
+    assert not r.term_used[4, 7] and r.term_used[4, 6]
+    keep = [0, 1, 3, 4, 5]
+    expect = d[keep].mean(axis=0)
+    expect[7] = d[[0, 1, 3, 5], 7].mean()
+    assert np.allclose(r.zernikes_nm, expect + design, atol=1e-9)
+    # Uncertainty: about sigma / sqrt(5) (rescaled by the observed scatter).
+    assert np.all(r.uncertainty_nm > 0.4 * sigma / np.sqrt(5))
+    assert np.all(r.uncertainty_nm < 2.0 * sigma / np.sqrt(4))
+
+
+def test_combination_single_pair_uses_noise_model():
+    cfg = CombinationConfig(noise_coefficient_nm=2000.0, pair_floor_nm=3.0,
+                            common_floor_nm=1.0)
+    q = pair_noise_scale(100.0, 200.0)
+    assert q == pytest.approx(np.sqrt(1e-4 + 2.5e-5))
+    r = combine_pairs(np.ones((1, 19)), np.array([q]), config=cfg)
+    assert r.n_pairs == 1
+    assert np.allclose(r.uncertainty_nm, np.sqrt((2000 * q) ** 2 + 9 + 1))
+    empty = combine_pairs(np.zeros((0, 19)), np.zeros(0), config=cfg)
+    assert empty.n_pairs == 0 and np.all(np.isnan(empty.zernikes_nm))
+
+
+def _star(side, snr, fx, fy):
+    from cwfs_ros.core.detection import DetectedDonut
+
+    d = DetectedDonut(0.0, 0.0, 1.0, snr, 1.0, snr, 0.0, 0.0, "ok")
+    return StarStamp(side, d, np.zeros((2, 2)), (0, 0), (fx, fy))
+
+
+def test_pairing_by_brightness_and_position():
+    intra = [_star("intra", 50, 0.00, 0.0), _star("intra", 300, 0.02, 0.0),
+             _star("intra", 120, 0.04, 0.0)]
+    extra = [_star("extra", 90, 1.04, 0.0), _star("extra", 400, 1.00, 0.0)]
+    pairs = pair_stars(intra, extra, max_pairs=4, method="brightness")
+    assert [(a.donut.snr, b.donut.snr) for a, b in pairs] == [(300, 400), (120, 90)]
+    pairs = pair_stars(intra, extra, method="position", centres_deg=((0.0, 0.0), (1.0, 0.0)))
+    got = sorted((a.field_deg[0], b.field_deg[0]) for a, b in pairs)
+    assert got == [(0.0, 1.0), (0.04, 1.04)]
+    assert len(pair_stars(intra, extra, max_pairs=1)) == 1
+
+
+def test_corner_from_frames_end_to_end(intra_frame, extra_frame, telescope):
+    from cwfs_ros.sim.render import true_zernikes_nm
+    from cwfs_ros.sim.telescope import load_lsst
+
+    res = estimate_corner_frames(intra_frame.image, extra_frame.image, corner="R00",
+                                 settings=EstimatorSettings(solver="lsq"), config=_config())
+    assert res.valid, res.status
+    assert res.n_pairs == 2 and len(res.pairs) == 2
+    counts = res.rejected_counts()
+    assert counts.get("blended", 0) >= 1 and counts.get("too_faint", 0) == 1
+    assert counts.get("saturated", 0) == 1 and counts.get("donut_cut_by_edge", 0) == 1
+    summary = res.summary()
+    assert summary.startswith("ok: 2 pair(s)") and "1 too_faint" in summary, summary
+    # Each pair was estimated at its own stars' fields, the result is at the corner's.
+    fields = {p.field_intra_deg for p in res.pairs}
+    assert len(fields) == 2
+    assert res.field_deg == load_half_chips()["R00"]["intra"].mid_deg
+    assert np.all(np.isfinite(res.uncertainty_nm)) and np.all(res.uncertainty_nm > 0)
+    truth = true_zernikes_nm(telescope, res.field_deg, wavelength_nm=622.0)
+    design = true_zernikes_nm(load_lsst("r"), res.field_deg, wavelength_nm=622.0)
+    # 1e5-photon donuts: tens of nm of noise per term, but far less than the perturbation.
+    err = np.sqrt(np.mean((res.zernikes_nm - truth) ** 2))
+    assert err < 0.5 * np.sqrt(np.mean((truth - design) ** 2)), err
+
+
+def test_frame_job_never_raises():
+    bad = np.full((400, 400), np.nan)
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, bad, bad))
+    assert not res.valid and res.reason == "non_finite"
+    res = run_corner_frame_job(CornerFrameJob("R99", 5, np.zeros((400, 400)),
+                                              np.zeros((400, 400))))
+    assert not res.valid and res.reason == "config"
+    flat = np.random.default_rng(0).poisson(30.0, (400, 400)).astype(float)
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, flat, flat))
+    assert not res.valid and res.reason == "no_donuts"
