@@ -39,7 +39,9 @@ __all__ = [
     "CornerPool",
     "EstimatorSettings",
     "invalid_outcome",
+    "frame_outcome",
     "run_corner_job",
+    "run_frame_job",
     "synthetic_donut",
     "validate_settings",
     "warm_corner",
@@ -125,6 +127,9 @@ class CornerOutcome:
         reason: the tag alone (``""`` when valid), for counting.
         field_deg: field of the estimate (mid-point of the two half-chips), degrees.
         compute_ms: wall time spent in the worker, ms.
+        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated (a
+            single stamp pair); frames give it from the pairs' combination.
+        n_pairs: donut pairs combined (1 for a stamp pair; 0 when none was usable).
     """
 
     corner: str
@@ -141,6 +146,8 @@ class CornerOutcome:
     solver: str = ""
     worker_pid: int = 0
     noll: tuple[int, ...] = field(default=_NOLL)
+    uncertainty_nm: np.ndarray | None = None
+    n_pairs: int = 1
 
 
 def _mid(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
@@ -206,6 +213,34 @@ def run_corner_job(job: CornerJob) -> CornerOutcome:
                          tuple(float(v) for v in res.field_deg), bool(res.caustic),
                          bool(res.converged), int(res.iterations), ms, res.solver,
                          os.getpid())
+
+
+def frame_outcome(res: Any) -> CornerOutcome:
+    """A :class:`CornerOutcome` from a :class:`~cwfs_ros.core.selection.CornerFrameResult`."""
+    z = np.asarray(res.zernikes_nm, dtype=np.float64)
+    unc = np.asarray(res.uncertainty_nm, dtype=np.float64)
+    ms = float(res.timing_ms.get("total", 0.0))
+    if not res.valid:
+        return CornerOutcome(res.corner, int(res.stamp_ns), False, res.status, res.reason,
+                             np.full(len(_NOLL), np.nan), tuple(res.field_deg),
+                             caustic=bool(res.caustic), compute_ms=ms, solver=res.solver,
+                             worker_pid=res.worker_pid, uncertainty_nm=None,
+                             n_pairs=int(res.n_pairs))
+    if z.shape != (len(_NOLL),) or not np.all(np.isfinite(z)):
+        return invalid_outcome(res.corner, res.stamp_ns, "non_finite_estimate",
+                               "the frame combination returned NaN/Inf Zernikes",
+                               tuple(res.field_deg), tuple(res.field_deg), res.solver, ms)
+    return CornerOutcome(res.corner, int(res.stamp_ns), True, res.summary(), "", z,
+                         tuple(float(v) for v in res.field_deg), bool(res.caustic), True,
+                         int(res.iterations), ms, res.solver, res.worker_pid,
+                         uncertainty_nm=unc, n_pairs=int(res.n_pairs))
+
+
+def run_frame_job(job: Any) -> CornerOutcome:
+    """Estimate one corner from its two frames (runs in a worker process; never raises)."""
+    from .selection import run_corner_frame_job
+
+    return frame_outcome(run_corner_frame_job(job))
 
 
 def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.ndarray:
@@ -353,6 +388,35 @@ class CornerPool:
                     job.corner, job.stamp_ns, "worker_crashed",
                     f"the worker process failed ({type(exc).__name__}: {exc})",
                     job.field_intra_deg, job.field_extra_deg, job.settings.solver))
+
+        inner.add_done_callback(done)
+        return out
+
+    def submit_frames(self, job: Any) -> Future:
+        """Queue a :class:`~cwfs_ros.core.selection.CornerFrameJob` (two full half-chip
+        frames) on its corner's worker; the future's result is a :class:`CornerOutcome`
+        carrying the combination of every usable donut pair (``n_pairs``,
+        ``uncertainty_nm``). A dead worker gives ``worker_crashed``, as for :meth:`submit`.
+        """
+        if job.corner not in self.affinity:
+            raise ConfigError(f"corner {job.corner!r} is not served by this pool")
+        out: Future = Future()
+        inner = self._submit(job.corner, run_frame_job, job)
+        i = self.affinity[job.corner]
+        nan_field = (float("nan"), float("nan"))
+
+        def done(f: Future) -> None:
+            try:
+                out.set_result(f.result())
+            except BaseException as exc:  # noqa: BLE001
+                if isinstance(exc, BrokenProcessPool):
+                    ex = self._slots[i]
+                    if ex is not None:
+                        self._restart(i, ex)
+                out.set_result(invalid_outcome(
+                    job.corner, job.stamp_ns, "worker_crashed",
+                    f"the worker process failed ({type(exc).__name__}: {exc})",
+                    nan_field, nan_field, job.settings.solver))
 
         inner.add_done_callback(done)
         return out

@@ -39,7 +39,13 @@ from std_srvs.srv import Trigger
 from cwfs_ros.core.visits import CORNERS
 from cwfs_ros.sim.perturbation import RIGID_SCALE
 from cwfs_ros.sim.telescope import BANDS
-from cwfs_ros.sim.visit import DonutSpec, make_render_pool, render_visit
+from cwfs_ros.sim.visit import (
+    DonutSpec,
+    FrameSpec,
+    make_render_pool,
+    render_frames,
+    render_visit,
+)
 
 from .common import (
     DIAGNOSTICS_QOS,
@@ -118,6 +124,7 @@ class CameraSimNode(Node):
         self.visit = 0
         self.last_render_s = float("nan")
         self.last_status = "no visit yet"
+        self.last_frame_stars: dict = {}
         self._busy = False
         self._closing = False
         self._thread: threading.Thread | None = None
@@ -179,6 +186,24 @@ class CameraSimNode(Node):
             "Gaussian seeing blur FWHM [arcsec]; 0 = none.", fp_range=(0.0, 10.0), **ro))
         d("read_noise_e", 0.0, describe(
             "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
+        d("frames", False, describe(
+            "Publish half-chip frames with several stars (random positions and brightness, "
+            "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
+            "then selects, pairs and combines the donuts.", **ro))
+        d("frame_rows", 2000, describe("Frame rows [px] (frames mode).",
+                                       int_range=(200, 8192), **ro))
+        d("frame_cols", 1000, describe("Frame columns [px] (frames mode).",
+                                       int_range=(200, 8192), **ro))
+        d("frame_stars_min", 3, describe("Fewest isolated stars per frame.",
+                                         int_range=(0, 50), **ro))
+        d("frame_stars_max", 6, describe("Most isolated stars per frame.",
+                                         int_range=(0, 50), **ro))
+        d("frame_flux_min", 2e5, describe("Photons of the faintest isolated star.",
+                                          fp_range=(1.0, 1e9), **ro))
+        d("frame_flux_max", 1e6, describe("Photons of the brightest isolated star.",
+                                          fp_range=(1.0, 1e9), **ro))
+        d("frame_blend", True, describe("Add a blended pair to each frame.", **ro))
+        d("frame_faint", True, describe("Add a too-faint star to each frame.", **ro))
         d("render_workers", 0, describe(
             "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
             "1 = in the node's render thread). The images do not depend on it.",
@@ -281,24 +306,12 @@ class CameraSimNode(Node):
             npix, n_photons = int(p("npix")), float(p("n_photons"))
             sky, off_max = float(p("sky_per_pixel")), float(p("offset_px_max"))
             tel = self._sim.perturbed_telescope(dof, self.band)
-            # Offsets and per-donut seeds are drawn here, in a fixed order, so the images do
-            # not depend on how many render workers there are.
-            specs = []
-            for c in CORNERS:
-                g = self.geometry[c]
-                for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
-                                        ("extra", g.extra_field_deg, g.extra_offset_mm)):
-                    offset = (tuple(float(x) for x in self._rng.uniform(-off_max, off_max, 2))
-                              if off_max > 0 else (0.0, 0.0))
-                    specs.append(DonutSpec((c, side), tuple(field), float(dz), offset,
-                                           int(self._rng.integers(2**62))))
+            if bool(p("frames")):
+                images = self._render_frames(tel)
+            else:
+                images = self._render_stamps(tel, npix, n_photons, sky, off_max)
             if self._closing:
                 return
-            images = render_visit(tel, specs, wavelength_nm=self.wavelength_nm, npix=npix,
-                                  n_photons=n_photons, sky_per_pixel=sky,
-                                  seeing_fwhm_arcsec=float(p("seeing_fwhm_arcsec")),
-                                  read_noise_e=float(p("read_noise_e")),
-                                  executor=self._pool)
             truth = SimTruth()
             truth.header.stamp = ns_to_stamp(stamp_ns)
             truth.header.frame_id = self.frame_id
@@ -330,6 +343,48 @@ class CameraSimNode(Node):
         finally:
             with self._lock:
                 self._busy = False
+
+    def _render_stamps(self, tel, npix: int, n_photons: float, sky: float,
+                       off_max: float) -> dict:
+        """The 8 one-donut stamps of a visit (sky subtracted)."""
+        p = self._param
+        # Offsets and per-donut seeds are drawn here, in a fixed order, so the images do
+        # not depend on how many render workers there are.
+        specs = []
+        for c in CORNERS:
+            g = self.geometry[c]
+            for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
+                                    ("extra", g.extra_field_deg, g.extra_offset_mm)):
+                offset = (tuple(float(x) for x in self._rng.uniform(-off_max, off_max, 2))
+                          if off_max > 0 else (0.0, 0.0))
+                specs.append(DonutSpec((c, side), tuple(field), float(dz), offset,
+                                       int(self._rng.integers(2**62))))
+        return render_visit(tel, specs, wavelength_nm=self.wavelength_nm, npix=npix,
+                            n_photons=n_photons, sky_per_pixel=sky,
+                            seeing_fwhm_arcsec=float(p("seeing_fwhm_arcsec")),
+                            read_noise_e=float(p("read_noise_e")), executor=self._pool)
+
+    def _render_frames(self, tel) -> dict:
+        """The 8 half-chip frames of a visit, several stars each (sky included)."""
+        p = self._param
+        rows, cols = int(p("frame_rows")), int(p("frame_cols"))
+        nmin, nmax = int(p("frame_stars_min")), int(p("frame_stars_max"))
+        lo, hi = float(p("frame_flux_min")), float(p("frame_flux_max"))
+        specs = []
+        for c in CORNERS:
+            g = self.geometry[c]
+            for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
+                                    ("extra", g.extra_field_deg, g.extra_offset_mm)):
+                specs.append(FrameSpec((c, side), tuple(field), float(dz), (rows, cols),
+                                       (nmin, max(nmin, nmax)), (lo, max(lo, hi)),
+                                       bool(p("frame_blend")), bool(p("frame_faint")),
+                                       int(self._rng.integers(2**62))))
+        frames = render_frames(tel, specs, band=self.band, wavelength_nm=self.wavelength_nm,
+                               sky_per_pixel=float(p("sky_per_pixel")),
+                               read_noise_e=float(p("read_noise_e")), executor=self._pool)
+        with self._lock:
+            self.last_frame_stars = {k: len(f.stars) for k, f in frames.items()}
+        return {k: f.image for k, f in frames.items()}
 
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self):

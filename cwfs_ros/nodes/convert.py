@@ -77,9 +77,12 @@ def corner_wavefront_msg(out: CornerOutcome, *, field_intra_deg: Sequence[float]
     m.field_extra_deg = np.asarray(field_extra_deg, dtype=np.float64)
     m.noll = [int(j) for j in out.noll]
     m.zernikes_nm = [float(v) for v in out.zernikes_nm]
-    # The estimator gives no per-term uncertainty yet: NaN = unknown.
-    m.uncertainty_nm = [float("nan")] * len(out.noll)
-    m.n_pairs = 1
+    # A single stamp pair has no per-term uncertainty (NaN = unknown); frames give one from
+    # the scatter of their pairs.
+    unc = out.uncertainty_nm
+    m.uncertainty_nm = ([float(v) for v in unc] if unc is not None and len(unc) == len(out.noll)
+                        else [float("nan")] * len(out.noll))
+    m.n_pairs = int(max(0, min(out.n_pairs, 65535)))
     m.caustic = bool(out.caustic)
     m.valid = bool(out.valid)
     m.status = out.status

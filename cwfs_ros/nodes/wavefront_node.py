@@ -27,6 +27,7 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 
+import numpy as np
 from cwfs_msgs.msg import CornerWavefront, WavefrontVector
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
@@ -83,6 +84,7 @@ __all__ = ["WavefrontNode", "main"]
 NODE_NAME = "wavefront_node"
 _SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px")
 _SOLVERS = ("exp", "fft", "lsq")
+_INPUT_MODES = ("auto", "stamps", "frames")
 
 
 def image_topic(corner: str, side: str) -> str:
@@ -131,7 +133,7 @@ class WavefrontNode(Node):
                           if self.assemble else None)
         self.rejected = RejectionCounter()
         self.stats = {"images": 0, "pairs": 0, "corners_valid": 0, "corners_invalid": 0,
-                      "visits_published": 0, "visits_incomplete": 0}
+                      "visits_published": 0, "visits_incomplete": 0, "frame_pairs": 0}
         self.last_compute_ms: dict[str, float] = {}
         self.last_status: dict[str, str] = {}
 
@@ -216,6 +218,17 @@ class WavefrontNode(Node):
             "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
             read_only=True))
         d("frame_id", "focal_plane", describe("frame_id of the published messages."))
+        d("input_mode", "auto", describe(
+            "What the images are: stamps (one donut each, oriented by sensors.*), frames (a "
+            "half-chip each with several stars: detection, per-star field, pairing and "
+            "combination, oriented by the frames section of sensor_config), or auto (frames "
+            "when a side is >= frame_min_side_px).", constraints="auto | stamps | frames"))
+        d("frame_min_side_px", 400, describe(
+            "With input_mode auto, an image with a side of at least this many pixels is a "
+            "frame [px].", int_range=(16, 8192)))
+        d("selection_config", "", describe(
+            "Donut selection YAML for frames; empty = config/selection.yaml.",
+            read_only=True))
         d("image_reliability", "reliable", describe(
             "QoS reliability of the image subscriptions: reliable (a lost image loses the "
             "corner's visit) or best_effort (needed to hear a camera that publishes with "
@@ -255,6 +268,9 @@ class WavefrontNode(Node):
                 validate_settings(self._settings_from(get))
             except ConfigError as exc:
                 return result(False, str(exc))
+        if "input_mode" in new and new["input_mode"] not in _INPUT_MODES:
+            return result(False, f"input_mode must be one of {_INPUT_MODES}, got "
+                                 f"{new['input_mode']!r}")
         for n, v in new.items():
             if n.startswith("sensors.") and n.endswith(".flip") and v not in FLIPS:
                 return result(False, f"{n} must be one of {FLIPS}, got {v!r}")
@@ -354,10 +370,28 @@ class WavefrontNode(Node):
                                                   settings.solver), frame=pair.intra.frame_id,
                                   count=False)
             return
-        job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
-                        settings, oi, oe)
-        fut = self.pool.submit(job)
+        if self._is_frame_pair(pair.intra.image, pair.extra.image):
+            from cwfs_ros.core.selection import CornerFrameJob
+
+            with self._lock:
+                self.stats["frame_pairs"] += 1
+            fut = self.pool.submit_frames(CornerFrameJob(
+                c, pair.stamp_ns, pair.intra.image, pair.extra.image, settings,
+                sensor_config=str(self._param("sensor_config")),
+                selection_config=str(self._param("selection_config"))))
+        else:
+            job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
+                            settings, oi, oe)
+            fut = self.pool.submit(job)
         fut.add_done_callback(lambda f, frame=pair.intra.frame_id: self._on_future(f, frame))
+
+    def _is_frame_pair(self, intra: np.ndarray, extra: np.ndarray) -> bool:
+        """Frames (several stars, detection needed) or stamps (one donut each)?"""
+        mode = str(self._param("input_mode"))
+        if mode != "auto":
+            return mode == "frames"
+        side = int(self._param("frame_min_side_px"))
+        return max(*np.shape(intra), *np.shape(extra)) >= side
 
     def _on_future(self, f: Future, frame: str) -> None:
         try:

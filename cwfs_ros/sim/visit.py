@@ -20,7 +20,7 @@ import numpy as np
 
 from .render import render_donut
 
-__all__ = ["DonutSpec", "make_render_pool", "render_visit"]
+__all__ = ["DonutSpec", "FrameSpec", "make_render_pool", "render_frames", "render_visit"]
 
 
 @dataclass(frozen=True)
@@ -101,4 +101,56 @@ def render_visit(telescope: batoid.Optic, specs: Sequence[DonutSpec], *, wavelen
     if executor is None:
         return {s.key: _render_one(telescope, s, *args) for s in specs}
     futures = {s.key: executor.submit(_render_one, telescope, s, *args) for s in specs}
+    return {k: f.result() for k, f in futures.items()}
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """One half-chip frame of a visit with several stars (donut-selection input).
+
+    Attributes:
+        key: the caller's name for it, e.g. ``("R00", "intra")``.
+        field_ref_deg: the half-chip's field point [deg], imaged at the frame centre.
+        detector_offset_mm: detector offset from focus [mm]; negative = intra-focal.
+        shape_px: (rows, cols).
+        n_stars: (min, max) isolated stars, log-uniform fluxes in ``flux_range``.
+        flux_range: photons per isolated star.
+        blend, faint: also inject a blended pair / a too-faint star.
+        seed: seed of this frame's layout, photons and noise.
+    """
+
+    key: Hashable
+    field_ref_deg: tuple[float, float]
+    detector_offset_mm: float
+    shape_px: tuple[int, int]
+    n_stars: tuple[int, int]
+    flux_range: tuple[float, float]
+    blend: bool
+    faint: bool
+    seed: int
+
+
+def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelength_nm: float,
+                  sky_per_pixel: float, read_noise_e: float):
+    from .frames import random_stars, render_frame
+
+    rng = np.random.default_rng(spec.seed)
+    stars = random_stars(rng, spec.shape_px, n_good=spec.n_stars, flux_range=spec.flux_range,
+                         blend=spec.blend, faint=spec.faint,
+                         detector_offset_mm=abs(spec.detector_offset_mm))
+    return render_frame(telescope, stars, field_ref_deg=spec.field_ref_deg,
+                        detector_offset_mm=spec.detector_offset_mm, shape_px=spec.shape_px,
+                        band=band, wavelength_nm=wavelength_nm, sky_per_pixel=sky_per_pixel,
+                        read_noise_e=read_noise_e, rng=rng)
+
+
+def render_frames(telescope: batoid.Optic, specs: Sequence[FrameSpec], *, band: str,
+                  wavelength_nm: float, sky_per_pixel: float = 50.0, read_noise_e: float = 0.0,
+                  executor: Executor | None = None) -> dict[Hashable, object]:
+    """Render every frame of ``specs`` (:class:`cwfs_ros.sim.frames.SimulatedFrame`, sky
+    included: donut selection estimates and subtracts it), in parallel when given a pool."""
+    args = (band, float(wavelength_nm), float(sky_per_pixel), float(read_noise_e))
+    if executor is None:
+        return {s.key: _render_frame(telescope, s, *args) for s in specs}
+    futures = {s.key: executor.submit(_render_frame, telescope, s, *args) for s in specs}
     return {k: f.result() for k, f in futures.items()}
