@@ -54,10 +54,16 @@ def donuts() -> tuple[np.ndarray, np.ndarray, tuple, tuple]:
 
 @dataclass
 class Sample:
-    """A fuzzed message and what it holds (short repr: hypothesis prints failing cases)."""
+    """A fuzzed message and what it holds (short repr: hypothesis prints failing cases).
+
+    ``partner`` is the image to pair it with in the other slot when the damage needs one
+    (``swapped``: the message holds the extra-focal donut, the partner the intra-focal one);
+    None means the genuine donut of the other side.
+    """
 
     msg: Image
     damage: str
+    partner: np.ndarray | None = None
 
     def __repr__(self) -> str:
         m = self.msg
@@ -68,7 +74,8 @@ class Sample:
 @st.composite
 def image_messages(draw) -> Sample:
     """An Image message, and what it holds: ``random`` bytes, or a real donut with a named
-    ``damage`` (``none``, ``scale``, ``nan`` ...; ``framing`` when its fields are broken)."""
+    ``damage`` (``none``, ``scale``, ``nan``, ``clip`` (saturated), ``swapped`` (intra and
+    extra exchanged) ...; ``framing`` when its fields are broken)."""
     structured = draw(st.integers(0, 3)) > 0  # most examples reach the estimator
     bad_encodings = ["rgb8", "bgr8", "yuv422", "", "32FC3"]
     encoding = draw(st.sampled_from(["32FC1", "64FC1", "16UC1", "32SC1"] if structured
@@ -79,9 +86,13 @@ def image_messages(draw) -> Sample:
     bpp = BPP.get(ENCODINGS.get(encoding, "u1"), 1)
     if structured and encoding in ENCODINGS:
         intra = donuts()[0].astype(np.float64)
+        partner = None
         damage = draw(st.sampled_from(["none", "scale", "nan", "inf", "clip", "negate",
-                                       "crop", "shift", "constant"]))
-        if damage == "scale":
+                                       "crop", "shift", "constant", "swapped"]))
+        if damage == "swapped":
+            # The extra-focal donut sent as the intra image, the intra one as its partner.
+            intra, partner = donuts()[1].astype(np.float64), donuts()[0]
+        elif damage == "scale":
             intra = intra * draw(st.floats(1e-3, 1e3))
         elif damage in ("nan", "inf"):
             r, c = draw(st.integers(0, 159)), draw(st.integers(0, 159))
@@ -102,9 +113,13 @@ def image_messages(draw) -> Sample:
             info = np.iinfo(np.dtype(kind))
             if damage in ("nan", "inf"):
                 damage = "none"  # an integer image cannot hold NaN/Inf
-            clipped = np.clip(np.round(np.nan_to_num(intra)), info.min, info.max)
-            if np.any(clipped != np.round(intra)) and damage == "none":
-                damage = "clip"  # the integer range saturated the donut
+            rounded = np.round(np.nan_to_num(intra))
+            clipped = np.clip(rounded, info.min, info.max)
+            if damage in ("none", "scale") and np.count_nonzero(rounded > info.max) >= \
+                    0.01 * rounded.size:
+                damage = "clip"  # the integer range saturated the donut (1% of the stamp)
+            elif damage == "none" and np.any(rounded < info.min):
+                damage = "floor"  # negative background pixels cut at 0: not saturation
             intra = clipped
         msg = image_msg(intra.astype(np.dtype(kind)), 0, encoding=encoding)
         if draw(st.booleans()):  # also damage the framing now and then
@@ -113,7 +128,7 @@ def image_messages(draw) -> Sample:
                 msg.data = bytes(msg.data)[: len(msg.data) + min(delta, 0)] + \
                     b"\0" * max(delta, 0)
                 damage = "framing"
-        return Sample(msg, damage)
+        return Sample(msg, damage, partner)
     h = draw(st.integers(0, 9000 if big else 200))
     w = draw(st.integers(0, 9000 if big else 200))
     step = max(0, w * bpp + draw(st.integers(-3, 8)))
@@ -127,7 +142,7 @@ def image_messages(draw) -> Sample:
 
 
 # Damage after which no valid estimate may come out.
-MUST_REJECT = {"random", "framing", "nan", "inf", "negate", "constant"}
+MUST_REJECT = {"random", "framing", "nan", "inf", "negate", "constant", "clip", "swapped"}
 
 
 def _check(out, damage: str) -> None:
@@ -153,7 +168,10 @@ def test_message_to_corner_estimate_never_raises_and_flags_bad_input(sample, sid
         event(f"{damage}: decode {rec.error.split(':', 1)[0]}")
         assert rec.image is None and ":" in rec.error
         return
-    a, b = (rec.image, extra) if side == "intra" else (intra, rec.image)
+    if sample.partner is not None:  # the message's image in the intra slot, its partner extra
+        a, b = rec.image, sample.partner
+    else:
+        a, b = (rec.image, extra) if side == "intra" else (intra, rec.image)
     out = run_corner_job(CornerJob("R00", 1, a, b, fi, fe, EstimatorSettings(solver="lsq")))
     _check(out, damage)
 
@@ -193,7 +211,8 @@ def test_live_wavefront_node_answers_every_fuzzed_visit(ros_context):
             stamp = (1000 + next(counter)) * SEC
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, SEC)
             pubs["intra"].publish(msg)
-            pubs["extra"].publish(image_msg(extra, stamp))
+            partner = extra if sample.partner is None else sample.partner
+            pubs["extra"].publish(image_msg(partner, stamp))
             wait_for(lambda: stamp in got, 20, f"the result of visit {stamp}")
             m = got[stamp]
             if m.valid:

@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from .checks import CheckConfig, check_saturation
 from .errors import (
     DonutCutError,
     FlatImageError,
@@ -75,7 +76,8 @@ def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
-                  margin_px: float) -> PreparedDonut:
+                  margin_px: float, saturation_level: float | None = None,
+                  checks: CheckConfig | None = None) -> PreparedDonut:
     """Validate a donut stamp and measure background, centroid and flux.
 
     Args:
@@ -83,10 +85,15 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
         name: ``"intra"`` or ``"extra"`` (used in error messages).
         outer_radius_px: expected outer radius of the donut image in pixels.
         margin_px: extra room needed around the donut (the computation boundary).
+        saturation_level: pixel value (input units, as the stamp is given) at or above
+            which a pixel is saturated; None when unknown (the plateau test still runs).
+        checks: thresholds of the saturation tests (:class:`.checks.CheckConfig`); the
+            defaults when None.
 
     Raises:
         ImageError subclasses naming the problem: non-finite pixels, an empty or flat image,
-        a stamp too small for the donut at this defocus, a donut cut by the stamp edge.
+        a stamp too small for the donut at this defocus, a donut cut by the stamp edge, a
+        saturated or clipped donut.
     """
     img = np.asarray(image)
     if img.ndim != 2:
@@ -129,8 +136,10 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
     # then the flux-weighted centroid of everything inside the donut's radius.
     r2 = (xx - cx) ** 2 + (yy - cy) ** 2
     outside = r2 > (outer_radius_px + 2 * _SPILL_PX) ** 2
+    sky = border
     if outside.sum() >= max(50, 0.05 * img.size):
-        bg, sig = _robust_level(img[outside])
+        sky = img[outside]
+        bg, sig = _robust_level(sky)
         work = img - bg
     inside = r2 <= (outer_radius_px + _SPILL_PX) ** 2
     w = np.where(inside, work, 0.0)
@@ -141,6 +150,13 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
 
     r2 = (xx - cx) ** 2 + (yy - cy) ** 2
     inside = r2 <= (outer_radius_px + _SPILL_PX) ** 2
+    # Saturation before the flux tests: a donut clipped near its background would otherwise
+    # be reported as faint.  A background that is exactly constant means a noise-free
+    # (model) image, whose flat top need not be saturation.
+    body_mask = (r2 <= outer_radius_px**2) & (work > 0.3 * peak)
+    check_saturation(img, name=name, background=bg, noise_present=bool(np.ptp(sky) > 0),
+                     donut=inside, body_pixels=int(body_mask.sum()), level=saturation_level,
+                     config=checks or CheckConfig())
     flux = float(work[inside].sum())
     npix = int(inside.sum())
     # Background-limited S/N: the input units need not be photons, so no Poisson term.
@@ -160,7 +176,7 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
             f"{name} donut (centre col {cx:.1f}, row {cy:.1f}, radius {outer_radius_px:.1f} px) "
             f"extends beyond the {nx}x{ny} stamp"
         )
-    body = work[(r2 <= outer_radius_px**2) & (work > 0.3 * peak)]
+    body = work[body_mask]
     level = float(np.median(body)) if body.size else peak
     edge_means = [work[0].mean(), work[-1].mean(), work[:, 0].mean(), work[:, -1].mean()]
     if max(edge_means) > _EDGE_FRACTION * level:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 __all__ = [
     "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
-    "DonutCutError", "ShapeMismatchError", "StampTooSmallError",
+    "DonutCutError", "ShapeMismatchError", "StampTooSmallError", "SaturatedImageError",
+    "SwappedImagesError",
 ]
 
 
@@ -40,3 +41,15 @@ class ShapeMismatchError(ImageError):
 
 class StampTooSmallError(ImageError):
     reason = "stamp_too_small"
+
+
+class SaturatedImageError(ImageError):
+    """Pixels at the detector's saturation level, or a clipped flat top (:mod:`.checks`)."""
+
+    reason = "saturated"
+
+
+class SwappedImagesError(ImageError):
+    """The intra- and extra-focal images look exchanged (:mod:`.checks`)."""
+
+    reason = "swapped"

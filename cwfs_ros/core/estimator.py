@@ -22,12 +22,16 @@ compensated pupils on the primary's outer rim (the stop, where the model is exac
 any vignetting edge, and moves both images to undo it.  A vignetting model a pixel off (the
 FAM edge fields) otherwise shifts both pupils against the mapping, and the design wavefront,
 sampled at shifted pupil points, reads as tens of nm of astigmatism and coma.
+
+Input checks (:mod:`.checks`): each stamp is rejected if saturated (a configured level, or a
+flat-topped plateau at its maximum), and the pair if the intra and extra images look
+exchanged (off axis, from the vignetted footprints the geometry predicts for each side).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import lru_cache
 from typing import Any
 
@@ -38,6 +42,7 @@ from scipy.linalg import solve_triangular
 from scipy.ndimage import binary_dilation, gaussian_filter
 
 from ..paths import config_dir
+from .checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
 from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
 from .errors import ConfigError, ShapeMismatchError
@@ -47,7 +52,7 @@ from .tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from .zernike import ZernikeBasis, zernike_basis
 
 __all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "load_algorithm",
-           "PairGeometry", "pair_geometry"]
+           "load_checks", "PairGeometry", "pair_geometry"]
 
 NOLL_REPORTED = np.arange(4, 23)  # Z4..Z22, the published product
 
@@ -139,6 +144,16 @@ def load_algorithm(solver: str = "exp", **overrides: Any) -> AlgorithmConfig:
         raise ConfigError(f"algorithm parameters for {solver!r}: {exc}") from exc
 
 
+def load_checks(**overrides: Any) -> CheckConfig:
+    """The input checks' parameters (``input_checks`` in ``config/algorithm.yaml``)."""
+    path = config_dir() / "algorithm.yaml"
+    data = _algorithm_yaml(str(path), path.stat().st_mtime if path.exists() else 0.0)
+    return CheckConfig.from_mapping(data.get("input_checks"), **overrides)
+
+
+_CHECK_KEYS = frozenset(f.name for f in fields(CheckConfig))
+
+
 # -- geometry: everything that depends only on the instrument, fields and algorithm ---------
 
 @dataclass(frozen=True)
@@ -165,6 +180,8 @@ class PairGeometry:
             compensated image there (see :func:`_rim_registration`); None if too few.
         jac_mean_intra, jac_mean_extra: mean mapping Jacobian (px per pupil unit), which
             turns a pupil shift into the image shift that undoes it.
+        footprints: predicted image-plane footprints of both images for the swapped-pair
+            check (:func:`.checks.pair_footprints`).
     """
 
     shape: tuple[int, int]
@@ -195,6 +212,7 @@ class PairGeometry:
     rim_pinv: np.ndarray | None = None
     jac_mean_intra: np.ndarray | None = None
     jac_mean_extra: np.ndarray | None = None
+    footprints: PairFootprints | None = None
 
     def pupil_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
         """Scatter values on the computation points into an (n, n) image for display."""
@@ -254,6 +272,23 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
     return np.flatnonzero(sel), np.linalg.solve(normal, design.T).astype(np.float32)
 
 
+def _footprints(m_in: ImageMapping, m_ex: ImageMapping, grid_in: np.ndarray,
+                grid_ex: np.ndarray, cand: np.ndarray, n: int,
+                outer_radius_px: float) -> PairFootprints:
+    """Footprints of the swapped-pair check (:func:`.checks.pair_footprints`).
+
+    ``m_in``/``m_ex`` are mapped at the candidate points ``cand`` (the whole annulus plus
+    boundary); ``grid_in``/``grid_ex`` the transmitted masks on the (n, n) pupil grid, which
+    is symmetric about the pupil centre, so reversing both axes turns a mask by 180 degrees.
+    """
+    pts = []
+    for m, grid in ((m_in, grid_in), (m_ex, grid_ex)):
+        turned = grid.reshape(n, n)[::-1, ::-1].ravel()[cand]
+        pts.append(((m.x_px[m.transmitted], m.y_px[m.transmitted]),
+                    (m.x_px[turned], m.y_px[turned])))
+    return pair_footprints((pts[0], pts[1]), outer_radius_px)
+
+
 def _mean_jacobian(m: ImageMapping) -> np.ndarray:
     t = m.transmitted
     return np.array([[m.jxx[t].mean(), m.jxy[t].mean()],
@@ -284,6 +319,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     grid_ex = np.zeros(n * n, bool)
     grid_in[cand] = m_in.transmitted
     grid_ex[cand] = m_ex.transmitted
+    full_in, full_ex = m_in, m_ex  # mapped over the whole annulus, for the footprints
     if not (grid_in & grid_ex).any():
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
@@ -330,6 +366,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
                                m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
                       for m in (m_in, m_ex)))
+    footprints = _footprints(full_in, full_ex, grid_in, grid_ex, cand, n, outer)
     zc = basis.z[:, common].astype(float)
     gram = zc @ zc.T / max(int(common.sum()), 1)
     feedback_l = np.linalg.cholesky(gram) if algo.feedback_basis == "orthonormal" else None
@@ -355,7 +392,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                         m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
                         centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
                         mean_gradient(mask_ex), time.perf_counter() - t0, gram, feedback_l,
-                        rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex))
+                        rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
+                        footprints)
 
 
 # -- result -------------------------------------------------------------------------------
@@ -438,6 +476,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
                        instrument: str | Instrument = "lsst", band: str = "r",
                        wavelength_nm: float | None = None,
                        defocal_offset_mm: float | None = None, solver: str = "exp",
+                       saturation_level: float | None = None,
                        **algorithm: Any) -> WavefrontResult:
     """Estimate the wavefront from an intra/extra-focal donut pair (paper Fig. 3).
 
@@ -450,21 +489,30 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         band: optical band of the model (u, g, r, i, z, y); selects the batoid optic.
         wavelength_nm: wavelength; defaults to the band's effective wavelength.
         defocal_offset_mm: |detector offset|; defaults to the instrument's.
-        solver: ``"exp"`` (series expansion) or ``"fft"`` (iterative FFT).
-        **algorithm: overrides of ``config/algorithm.yaml`` (outer_iterations,
+        solver: ``"exp"`` (series expansion), ``"fft"`` (iterative FFT) or ``"lsq"``.
+        saturation_level: pixel value (input units) at which the detector saturates;
+            defaults to the instrument's ``saturation_level`` (None: unknown, and only the
+            plateau test of :mod:`.checks` detects saturation).
+        **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
-            tolerance_nm, inner_iterations, register_rim, feedback_basis).
+            tolerance_nm, inner_iterations, register_rim, feedback_basis) and those of its
+            ``input_checks`` (plateau_check, swap_check, ... see :class:`.checks.CheckConfig`).
 
     Returns:
         A :class:`WavefrontResult`; ``.zernikes_nm`` holds Z4..Z22 in nm.
 
     Raises:
-        ImageError (a subclass naming the problem) for unusable images, ConfigError for
-        invalid parameters or configuration.
+        ImageError (a subclass naming the problem) for unusable images: non-finite, flat,
+        cut, too small, mismatched, saturated (``reason`` "saturated") or an exchanged
+        intra/extra pair ("swapped"); ConfigError for invalid parameters or configuration.
     """
     t0 = time.perf_counter()
     inst = load_instrument(instrument)
+    checks = load_checks(**{k: algorithm.pop(k) for k in list(algorithm) if k in _CHECK_KEYS})
     algo = load_algorithm(solver, **algorithm)
+    sat = inst.saturation_level if saturation_level is None else saturation_level
+    if sat is not None and not (isinstance(sat, (int, float)) and np.isfinite(sat)):
+        raise ConfigError(f"saturation_level must be a finite number or None, got {sat!r}")
     fi = _field(field_intra_deg, "field_intra_deg")
     fe = _field(field_extra_deg, "field_extra_deg")
     defocus = inst.defocal_offset_mm if defocal_offset_mm is None else float(defocal_offset_mm)
@@ -487,9 +535,14 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     # extend beyond it (samples outside a stamp read zero flux, which is what is there).
     margin = 2.0 + algo.smooth_sigma_px
     don_in = prepare_donut(a_in, name="intra", outer_radius_px=geom.outer_radius_px,
-                           margin_px=margin)
+                           margin_px=margin, saturation_level=sat, checks=checks)
     don_ex = prepare_donut(a_ex, name="extra", outer_radius_px=geom.outer_radius_px,
-                           margin_px=margin)
+                           margin_px=margin, saturation_level=sat, checks=checks)
+    # Off axis the vignetting tells which image is which: an exchanged pair gives a wrong
+    # wavefront with no other sign of trouble (see cwfs_ros.core.checks).
+    if geom.footprints is not None:
+        check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy, don_ex.centroid_xy,
+                          (don_in.noise, don_ex.noise), geom.footprints, checks)
     # Align each image so that its centroid falls where the mapping, with the current
     # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
     # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any

@@ -12,6 +12,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from ..paths import config_dir
@@ -44,6 +45,8 @@ class Instrument:
             (poly10 mapping only).
         default_band: band used when the caller gives none.
         band_wavelength_nm: effective wavelength per band.
+        saturation_level: pixel value of the stamps as given to the estimator (e.g. e- or
+            ADU) at or above which the detector saturates; None (null) when unknown.
     """
 
     name: str
@@ -59,6 +62,7 @@ class Instrument:
     default_band: str = "r"
     band_wavelength_nm: dict[str, float] = field(default_factory=dict)
     description: str = ""
+    saturation_level: float | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -77,6 +81,10 @@ class Instrument:
             problems.append("mapping 'batoid' needs batoid_optic (e.g. 'LSST_{band}.yaml')")
         if self.mapping == "poly10" and not self.mapping_tables:
             problems.append("mapping 'poly10' needs mapping_tables (e.g. 'poly10/lsst')")
+        sat = self.saturation_level
+        if sat is not None and (isinstance(sat, bool) or not isinstance(sat, (int, float))
+                                or not np.isfinite(sat)):
+            problems.append(f"saturation_level must be a number or null, got {sat!r}")
         if not isinstance(self.band_wavelength_nm, dict) or not all(
             isinstance(v, (int, float)) and v > 0 for v in self.band_wavelength_nm.values()
         ):
