@@ -414,6 +414,18 @@ def _register_bag_subcommands() -> None:
 _register_bag_subcommands()
 
 
+def _register_validate_subcommand() -> None:
+    # validate: the paper's Figs. 4-10 and beyond (stdlib only until the handler runs).
+    from functools import partial
+
+    from .validate import add_validate_parser
+
+    subcommand(partial(add_validate_parser, cli_error=CliError))
+
+
+_register_validate_subcommand()
+
+
 def format_result(result: Any) -> str:
     """Human-readable table of Z4..Z22 plus a status line."""
     lines = [
