@@ -33,6 +33,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from cwfs_ros.params import check_declared
 from cwfs_ros.paths import config_dir
 
 __all__ = [
@@ -139,11 +140,16 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
     Returns:
         Process exit code (0 after a clean shutdown, 2 when a node could not start).
     """
+    from .params import ParamsFileError, read_params_file
+
     ensure_fastdds_profile()
     try:
         classes = [load_node_class(n) for n in names]
         argv = ["cwfs-ros", *ros_arguments(params_files, ros_args)]
-    except LaunchError as exc:
+        files = _params_files_of(argv)
+        for f in files:
+            read_params_file(f)  # YAML and structure, before rcl reads it
+    except (LaunchError, ParamsFileError) as exc:
         print(f"cwfs-ros: error: {exc}", file=sys.stderr)
         return 2
 
@@ -151,11 +157,16 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
     ctx = context
-    if ctx is None:
-        rclpy.init(args=argv, domain_id=domain_id)
-        ctx = rclpy.get_default_context()
-    else:
-        rclpy.init(args=argv, context=ctx, domain_id=domain_id)
+    try:
+        if ctx is None:
+            rclpy.init(args=argv, domain_id=domain_id)
+            ctx = rclpy.get_default_context()
+        else:
+            rclpy.init(args=argv, context=ctx, domain_id=domain_id)
+    except Exception as exc:  # noqa: BLE001 - rcl's RCLError for bad --ros-args
+        print(f"cwfs-ros: error: ROS could not start: {' '.join(str(exc).split())}",
+              file=sys.stderr)
+        return 2
     nodes = []
     executor = None
     code = 0
@@ -167,6 +178,12 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 print(f"cwfs-ros: error: {name} could not start: {type(exc).__name__}: {exc}",
                       file=sys.stderr)
                 return 2
+        problems = [msg for n in nodes
+                    for msg in check_declared(files, n.get_name(), declared_kinds(n))]
+        if problems:
+            print("cwfs-ros: error: parameter file problems; not running:\n  "
+                  + "\n  ".join(problems), file=sys.stderr)
+            return 2
         executor = MultiThreadedExecutor(num_threads=threads or max(4, os.cpu_count() or 1),
                                          context=ctx)
         for n in nodes:
@@ -186,6 +203,22 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 pass
         ctx.try_shutdown()
     return code
+
+
+def _params_files_of(argv: Sequence[str]) -> list[Path]:
+    """Every ``--params-file`` of an rcl command line, in order."""
+    return [Path(argv[i + 1]) for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+
+
+_KINDS = {1: "bool", 2: "integer", 3: "double", 4: "string", 5: "byte_array",
+          6: "bool_array", 7: "integer_array", 8: "double_array", 9: "string_array"}
+
+
+def declared_kinds(node) -> dict[str, str]:
+    """Name -> kind (:func:`cwfs_ros.params.yaml_kind` names) of a node's declared
+    parameters."""
+    names = node.list_parameters([], 0).names
+    return {n: _KINDS.get(int(node.get_parameter(n).type_.value), "unset") for n in names}
 
 
 def _split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:

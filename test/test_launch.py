@@ -111,3 +111,47 @@ def test_sim_yaml_only_sets_parameters_the_nodes_declare():
         assert node in declared
         unknown = set(body["ros__parameters"]) - set(declared[node]["ros__parameters"])
         assert not unknown, f"{node}: {unknown}"
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("text, words", [
+    ("ofc_node:\n  ros__parameters:\n    kp: [1, 2\n", "not valid YAML"),
+    ("ofc_node: 3\n", "has no ros__parameters mapping"),
+    # rcl would silently keep params.yaml's kp under a value of another type ...
+    ("ofc_node:\n  ros__parameters:\n    kp: fast\n", "'fast' is a string, the parameter is a double"),
+    # ... and silently ignore a name no node declares: the controller would stay live.
+    ("ofc_node:\n  ros__parameters:\n    dryrun: true\n", "declares no such parameter"),
+])
+def test_bad_parameter_files_stop_the_launch_with_the_reason(tmp_path, ros_domain, capsys,
+                                                             text, words):
+    import rclpy
+
+    f = tmp_path / "user.yaml"
+    f.write_text(text)
+    code = L.run_nodes(["ofc_node"], params_files=[f], context=rclpy.Context(),
+                       domain_id=ros_domain, on_ready=lambda *a: pytest.fail("started"))
+    err = capsys.readouterr().err
+    assert code == 2 and words in err and str(f) in err, err
+
+
+@pytest.mark.ros
+def test_shipped_parameter_files_pass_the_check(ros_domain):
+    """params.yaml and sim.yaml only set declared parameters, with the declared types."""
+    import rclpy
+
+    from cwfs_ros.params import check_declared
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    try:
+        from cwfs_ros.nodes.ofc_node import OfcNode
+
+        node = OfcNode(context=ctx)
+        kinds = L.declared_kinds(node)
+        assert kinds["kp"] == "double" and kinds["dry_run"] == "bool"
+        assert kinds["dof_mask"] == "bool_array"
+        assert check_declared([L.default_params_file(), L.sim_params_file()], "ofc_node",
+                              kinds) == []
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
