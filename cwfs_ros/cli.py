@@ -288,13 +288,11 @@ def _run_demo(args: argparse.Namespace) -> int:
     bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
 
     def on_visit(r: Any) -> None:
-        import numpy as np
-
         if r.visit == 1:
             tqdm.write(header + "\n" + f"{'':>5}  {'(nm)':>9}  {'(nm)':>9}  {'(nm rms)':>8}"
                        f"  {'':>10}  {'(s)':>7}  {'(ms)':>8}  {'(ms)':>6}")
         tqdm.write(f"{r.visit:>5}  {r.true_error_nm:>9.1f}  {r.estimated_error_nm:>9.1f}  "
-                   f"{float(np.nanmedian(r.estimate_rms_error_nm)):>8.1f}  "
+                   f"{r.median_estimate_error_nm:>8.1f}  "
                    f"{'valid' if r.correction_valid else 'REFUSED':>10}  {r.render_s:>7.1f}  "
                    f"{1e3 * r.estimate_s:>8.0f}  {1e3 * r.solve_s:>6.0f}")
         if not r.correction_valid:

@@ -124,6 +124,13 @@ class VisitRecord:
         return wavefront_error_nm(self.estimate_nm, self.intrinsic_nm)
 
     @property
+    def median_estimate_error_nm(self) -> float:
+        """Median over the valid corners of :attr:`estimate_rms_error_nm`; NaN if none."""
+        e = self.estimate_rms_error_nm
+        e = e[np.isfinite(e)]
+        return float(np.median(e)) if e.size else float("nan")
+
+    @property
     def estimate_rms_error_nm(self) -> np.ndarray:
         """Per-corner RMS (mean over Z4..Z22) of estimate minus truth (4,) [nm]."""
         d = (self.estimate_nm - self.truth_nm).reshape(len(CORNERS), N_ZK)
@@ -161,7 +168,7 @@ class LoopRun:
             "visits": len(self.records),
             "true_error_nm": [round(float(x), 2) for x in e],
             "estimated_error_nm": [round(float(r.estimated_error_nm), 2) for r in self.records],
-            "estimate_rms_error_nm": [round(float(np.nanmedian(r.estimate_rms_error_nm)), 2)
+            "estimate_rms_error_nm": [round(r.median_estimate_error_nm, 2)
                                       for r in self.records],
             "corrections_valid": [bool(r.correction_valid) for r in self.records],
             "reduction_within_5": round(self.reduction(5), 2),
@@ -451,7 +458,7 @@ def write_report(run: LoopRun, out_dir: str | Path) -> dict[str, Path]:
         for r in run.records:
             w.writerow([r.visit, r.stamp_ns, f"{r.true_error_nm:.3f}",
                         f"{r.estimated_error_nm:.3f}",
-                        f"{np.nanmedian(r.estimate_rms_error_nm):.3f}", r.correction_valid,
+                        f"{r.median_estimate_error_nm:.3f}", r.correction_valid,
                         r.correction_status, f"{r.render_s:.3f}", f"{r.estimate_s:.4f}",
                         f"{r.solve_s:.4f}", *[f"{x:.6g}" for x in r.dof_state],
                         *[f"{x:.6g}" for x in r.correction]])
@@ -464,7 +471,7 @@ def _html(run: LoopRun, png_name: str) -> str:
     rows = "\n".join(
         f"<tr><td>{r.visit}</td><td>{r.true_error_nm:.1f}</td>"
         f"<td>{r.estimated_error_nm:.1f}</td>"
-        f"<td>{np.nanmedian(r.estimate_rms_error_nm):.1f}</td>"
+        f"<td>{r.median_estimate_error_nm:.1f}</td>"
         f"<td>{'yes' if r.correction_valid else 'no: ' + r.correction_status}</td>"
         f"<td>{r.render_s:.1f}</td><td>{1e3 * r.estimate_s:.0f}</td>"
         f"<td>{1e3 * r.solve_s:.0f}</td></tr>" for r in run.records)

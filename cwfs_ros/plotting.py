@@ -257,7 +257,7 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
     v = np.array([r.visit for r in recs])
     true_e = np.array([r.true_error_nm for r in recs])
     est_e = np.array([r.estimated_error_nm for r in recs])
-    est_err = np.array([float(np.nanmedian(r.estimate_rms_error_nm)) for r in recs])
+    est_err = np.array([r.median_estimate_error_nm for r in recs])
     ax.semilogy(v, true_e, "-o", color="k", label="true wavefront error")
     ax.semilogy(v, est_e, "--s", color="C0", ms=4, label="measured by wavefront_node")
     ax.semilogy(v, est_err * np.sqrt(n), ":^", color="C3", ms=4,
