@@ -208,6 +208,43 @@ def bench_speed(solvers: list[str]) -> None:
                          check=True).stdout.split()
     print(f"  first call in a fresh process: import {out[0]} s, first estimate {out[1]} s "
           f"(geometry {out[2]} s; target <= 1 s)")
+    bench_new_fields(solvers)
+
+
+def bench_new_fields(solvers: list[str], n: int = 10) -> None:
+    """Geometry of a pair at new star fields on corner R00's half-chips, in a warm process.
+
+    The first new field of a process also builds the field-independent fit operator and the
+    design-wavefront tile of its mid-point (once per pupil grid / 0.125 deg tile); the median
+    over ``n`` further random fields is the per-visit cost.
+    """
+    from threadpoolctl import threadpool_limits
+
+    from cwfs_ros.core.estimator import load_algorithm, pair_geometry
+    from cwfs_ros.core.field_position import load_half_chips
+    from cwfs_ros.core.instrument import load_instrument
+
+    h = load_half_chips()["R00"]
+    inst = load_instrument("lsst")
+    fi0, fe0 = np.array(h["intra"].field_deg), np.array(h["extra"].field_deg)
+    rng = np.random.default_rng(1)
+    print(f"  new star fields (corner R00, {n} random pairs of fields on its half-chips), "
+          "geometry build:")
+    for s in solvers:
+        algo = load_algorithm(s)
+        with threadpool_limits(1):
+            t0 = time.perf_counter()
+            pair_geometry(inst, "r", 622.0, tuple(fi0), tuple(fe0), 1.5, algo)
+            first = time.perf_counter() - t0
+            ts = []
+            for _ in range(n):
+                d = rng.uniform([-0.03, -0.06, -0.03, -0.06], [0.03, 0.06, 0.03, 0.06])
+                fi, fe = tuple(map(float, fi0 + d[:2])), tuple(map(float, fe0 + d[2:]))
+                t0 = time.perf_counter()
+                pair_geometry(inst, "r", 622.0, fi, fe, 1.5, algo)
+                ts.append(time.perf_counter() - t0)
+        print(f"    {s}: median {np.median(ts) * 1e3:.0f} ms  max {max(ts) * 1e3:.0f} ms  "
+              f"(first in the process {first * 1e3:.0f} ms)")
 
 
 def main() -> None:

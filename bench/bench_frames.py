@@ -23,6 +23,7 @@ evaluated with it (independent seeds). --write-config stores the fit in config/s
 
 Usage: .venv/bin/python bench/bench_frames.py [--trials 16] [--calib-trials 14] [--solver lsq]
        [--write-config]   (the defaults are the reported run: ~8 min on 2 shared cores)
+       [--timing-only]    (selection and timing of --trials trials, no noise-model fit)
 """
 
 from __future__ import annotations
@@ -178,7 +179,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=20261126)
     ap.add_argument("--write-config", action="store_true",
                     help="store the fitted noise model in config/selection.yaml")
+    ap.add_argument("--timing-only", action="store_true",
+                    help="run --trials trials (no calibration trials) and report timing only")
     a = ap.parse_args()
+    if a.timing_only:
+        a.calib_trials = 0
     halves = load_half_chips()[a.corner]
     settings = EstimatorSettings(solver=a.solver)
     sel_cfg = load_selection_config(solver=a.solver, max_pairs=a.max_pairs)
@@ -232,6 +237,9 @@ def main() -> None:
     if four.any():
         print(f"  4-pair corners: warm {np.median(warm[four]):.0f} ms, cold "
               f"{np.median(cold[four]):.0f} ms (n={int(four.sum())})")
+
+    if a.timing_only:
+        return
 
     # -- noise model from the calibration trials
     cal, ev = trials[:a.calib_trials], trials[a.calib_trials:]

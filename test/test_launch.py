@@ -118,7 +118,8 @@ def test_sim_yaml_only_sets_parameters_the_nodes_declare():
     ("ofc_node:\n  ros__parameters:\n    kp: [1, 2\n", "not valid YAML"),
     ("ofc_node: 3\n", "has no ros__parameters mapping"),
     # rcl would silently keep params.yaml's kp under a value of another type ...
-    ("ofc_node:\n  ros__parameters:\n    kp: fast\n", "'fast' is a string, the parameter is a double"),
+    ("ofc_node:\n  ros__parameters:\n    kp: fast\n",
+     "'fast' is a string, the parameter is a double"),
     # ... and silently ignore a name no node declares: the controller would stay live.
     ("ofc_node:\n  ros__parameters:\n    dryrun: true\n", "declares no such parameter"),
 ])

@@ -39,7 +39,7 @@ import numpy as np
 import yaml
 from scipy import fft as sfft
 from scipy.linalg import solve_triangular
-from scipy.ndimage import binary_dilation, gaussian_filter
+from scipy.ndimage import distance_transform_edt, gaussian_filter
 
 from ..paths import config_dir
 from .checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
@@ -47,7 +47,7 @@ from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
 from .errors import ConfigError, ShapeMismatchError
 from .instrument import Instrument, load_instrument
-from .mapping import ImageMapping, design_zernikes_nm, nominal_mapping
+from .mapping import ImageMapping, design_zernikes_tiled, nominal_mapping
 from .tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from .zernike import ZernikeBasis, zernike_basis
 
@@ -79,6 +79,9 @@ class AlgorithmConfig:
     # Register the compensated pupils on the primary's outer rim at every outer iteration
     # (corrects centroid alignment biased by vignetting-model errors; README, Accuracy).
     register_rim: bool = True
+    # Side (deg) of the field tiles over which the design wavefront is interpolated
+    # (:func:`.mapping.design_zernikes_tiled`; ~0.1 nm from the direct trace); 0: direct.
+    design_tile_deg: float = 0.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -104,6 +107,9 @@ class AlgorithmConfig:
         if not isinstance(self.inner_iterations, int) or self.inner_iterations < 1:
             problems.append(f"inner_iterations must be an integer >= 1, got "
                             f"{self.inner_iterations!r}")
+        if not (isinstance(self.design_tile_deg, (int, float))
+                and 0 <= self.design_tile_deg <= 1):
+            problems.append(f"design_tile_deg must be in [0, 1], got {self.design_tile_deg!r}")
         if self.feedback_basis not in ("zernike", "orthonormal"):
             problems.append(f"feedback_basis must be 'zernike' or 'orthonormal', got "
                             f"{self.feedback_basis!r}")
@@ -227,6 +233,18 @@ def _disk(radius: int) -> np.ndarray:
     return xx * xx + yy * yy <= radius * radius
 
 
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``binary_dilation(mask, structure=_disk(radius))``, from a Euclidean distance transform.
+
+    The same set (a pixel is within the disk of some True pixel iff its distance to the
+    nearest one is <= radius; the squared distances are integers, so the float comparison is
+    exact), at a cost that does not grow with the radius.
+    """
+    if not mask.any():
+        return np.zeros_like(mask, dtype=bool)
+    return distance_transform_edt(~mask) <= radius
+
+
 def _kappa(m: ImageMapping, mask: np.ndarray) -> float:
     """Image contrast per unit Laplacian, ``C tr(A^-1) / 2`` averaged over the pupil."""
     tr_inv = (m.jxx + m.jyy) / m.det
@@ -254,8 +272,7 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
     r = np.hypot(x, y)
     untrusted = np.zeros(n * n, bool)
     untrusted[region] = (annulus ^ mask_in) | (annulus ^ mask_ex)
-    untrusted = binary_dilation(untrusted.reshape(n, n),
-                                structure=_disk(int(np.ceil(2 * band * algo.oversample))))
+    untrusted = _dilate(untrusted.reshape(n, n), int(np.ceil(2 * band * algo.oversample)))
     sel = (np.abs(r - 1.0) <= band / r_d) & ~untrusted.ravel()[region]
     if sel.sum() < 200:
         return None, None
@@ -323,8 +340,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     if not (grid_in & grid_ex).any():
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
-    region2d = binary_dilation((grid_in | grid_ex).reshape(n, n),
-                               structure=_disk(algo.boundary_px * algo.oversample))
+    region2d = _dilate((grid_in | grid_ex).reshape(n, n), algo.boundary_px * algo.oversample)
     region = np.flatnonzero(region2d.ravel() & np.isin(np.arange(n * n), cand))
     pos = np.searchsorted(cand, region)
 
@@ -346,7 +362,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     only_one = np.zeros(n * n, bool)
     only_one[region] = mask_in ^ mask_ex
     guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
-    near = binary_dilation(only_one.reshape(n, n), structure=_disk(guard))
+    near = _dilate(only_one.reshape(n, n), guard)
     weight = np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
     basis = zernike_basis(x, y, jmax=algo.jmax, eps=inst.obscuration, dtype=np.float32)
     kappa = _kappa(m_in, common) - _kappa(m_ex, common)
@@ -360,7 +376,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                               kappa=kappa)
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))
-    intrinsic = design_zernikes_nm(inst, band, wavelength_nm, mid, algo.jmax)
+    intrinsic = design_zernikes_tiled(inst, band, wavelength_nm, mid, algo.jmax,
+                                      algo.design_tile_deg)
     # Radius of the circle around the flux centroid that holds the whole donut (off axis the
     # donut is neither centred on the chief ray nor round).
     outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
@@ -495,8 +512,9 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             plateau test of :mod:`.checks` detects saturation).
         **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
-            tolerance_nm, inner_iterations, register_rim, feedback_basis) and those of its
-            ``input_checks`` (plateau_check, swap_check, ... see :class:`.checks.CheckConfig`).
+            tolerance_nm, inner_iterations, register_rim, feedback_basis, design_tile_deg)
+            and those of its ``input_checks`` (plateau_check, swap_check, ... see
+            :class:`.checks.CheckConfig`).
 
     Returns:
         A :class:`WavefrontResult`; ``.zernikes_nm`` holds Z4..Z22 in nm.

@@ -53,8 +53,8 @@ from .errors import ConfigError
 from .instrument import Instrument
 from .zernike import zernike_basis
 
-__all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "SIDES", "Poly10Tables",
-           "poly10_tables"]
+__all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "design_zernikes_tiled",
+           "SIDES", "Poly10Tables", "poly10_tables"]
 
 SIDES = ("intra", "extra")
 
@@ -186,27 +186,168 @@ def _trace_defocused(inst: Instrument, band: str, wavelength_nm: float,
     return hx, hy, ok, transmitted
 
 
+class _FitOperator:
+    """Field-independent parts of the ray-hit fit at one set of pupil points.
+
+    The fit basis (circle Zernikes to ``_FIT_ORDER`` over the points' bounding radius), its
+    derivatives, and the least-squares operator of the regular fit subset depend only on the
+    pupil points, not on the field: a new field then costs one ray trace and a few small
+    matrix products (README, Speed).  The operator assumes every traced ray succeeded; a
+    trace with failed rays falls back to a direct least-squares solve on its own subset.
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray):
+        self.rmax = float(np.sqrt((x * x + y * y).max())) * 1.0001
+        jfit = (_FIT_ORDER + 1) * (_FIT_ORDER + 2) // 2
+        basis = zernike_basis(x / self.rmax, y / self.rmax, jmax=jfit, eps=0.0)
+        self.z = basis.z
+        self.dx = basis.dx / self.rmax
+        self.dy = basis.dy / self.rmax
+        # 120 smooth terms need far fewer than the ~15k traced points: fit on a regular
+        # subset (both coordinates in one solve), then evaluate everywhere.
+        self.fit_idx = np.arange(x.size)[::3]
+        q, r = np.linalg.qr(self.z[:, self.fit_idx].T.astype(float))
+        self.pinv = np.linalg.solve(r, q.T)  # (jfit, n_fit): coefficients = pinv @ hits
+        for a in (self.z, self.dx, self.dy, self.fit_idx, self.pinv):
+            a.setflags(write=False)
+        self.lattice = _lattice(x, y)
+
+    def infer_transmitted(self, known: np.ndarray, transmitted: np.ndarray,
+                          annulus: np.ndarray) -> np.ndarray:
+        """Annulus points whose vignetting follows from the traced points around them.
+
+        ``known`` marks the traced points and ``transmitted`` their outcome.  A point is
+        decided when at least _VIG_MIN_NEIGHBOURS traced points lie in the
+        (2 _VIG_HALF + 1)^2 lattice window around it and all agree; vignetting edges are
+        arcs of pupil radius and more, so a point on the other side of an edge from all of
+        its window's traced points cannot occur (checked against full traces at 160 random
+        LSST fields, corners and the whole field: no point differs).  Returns -1
+        (undecided), 0 or 1 per point.
+        """
+        from scipy.ndimage import uniform_filter
+
+        shape, flat = self.lattice
+        size = 2 * _VIG_HALF + 1
+        area = float(size * size)
+        img_k = np.zeros(shape[0] * shape[1])
+        img_t = np.zeros_like(img_k)
+        # Every traced point counts, also those beyond the annulus: a thin vignetted crescent
+        # inside an annulus edge (an obscuration off the stop, shifted with field) then
+        # disagrees with the points across that edge and is traced.
+        img_k[flat] = known
+        img_t[flat] = known & transmitted
+        n_k = np.rint(uniform_filter(img_k.reshape(shape), size, mode="constant") * area)
+        n_t = np.rint(uniform_filter(img_t.reshape(shape), size, mode="constant") * area)
+        n_k, n_t = n_k.ravel()[flat], n_t.ravel()[flat]
+        out = np.full(flat.size, -1, dtype=np.int8)
+        enough = n_k >= _VIG_MIN_NEIGHBOURS
+        out[enough & (n_t == 0)] = 0
+        out[enough & (n_t == n_k)] = 1
+        out[~annulus] = 0  # masked by the annulus anyway
+        out[known] = transmitted[known]
+        return out
+
+    def coefficients(self, hx: np.ndarray, hy: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """(jfit, 2) coefficients of the x' and y' fits to the hits of the successful rays."""
+        hits = np.stack([hx, hy], axis=1)
+        if ok.all():
+            return self.pinv @ hits[self.fit_idx]
+        fit_idx = np.flatnonzero(ok)[::3]
+        coef, *_ = np.linalg.lstsq(self.z[:, fit_idx].T.astype(float), hits[fit_idx],
+                                   rcond=None)
+        return coef
+
+
+# Vignetting inference from a subset of traced rays (see _FitOperator.infer_transmitted).
+_VIG_HALF = 2
+_VIG_MIN_NEIGHBOURS = 4
+
+
+def _lattice(x: np.ndarray, y: np.ndarray) -> tuple[tuple[int, int], np.ndarray] | None:
+    """(shape, flat index) of the points on their square lattice, or None if not one."""
+    ux = np.unique(x)
+    uy = np.unique(y)
+    if ux.size < 2 or uy.size < 2:
+        return None
+    step = float(np.min(np.diff(ux)))
+    ix = np.rint((x - ux[0]) / step)
+    iy = np.rint((y - uy[0]) / step)
+    if (np.abs(ux[0] + ix * step - x).max() > 1e-9 * step
+            or np.abs(uy[0] + iy * step - y).max() > 1e-9 * step):
+        return None
+    shape = (int(iy.max()) + 1, int(ix.max()) + 1)
+    if shape[0] * shape[1] > 16 * x.size:  # sparse points: no useful neighbourhoods
+        return None
+    flat = (iy * shape[1] + ix).astype(np.int64)
+    if np.unique(flat).size != flat.size:
+        return None
+    return shape, flat
+
+
+_FIT_CACHE: dict[tuple[int, bytes], _FitOperator] = {}
+# Each operator holds ~45 MB (three 120 x 13.6k float64 arrays) for the LSST 1.5 mm grid.
+_FIT_CACHE_SIZE = 4
+# Number of fit operators built (the cache is reused while this stays put; tests read it).
+fit_operator_builds = 0
+
+
+def _fit_operator(x: np.ndarray, y: np.ndarray) -> _FitOperator:
+    """The cached :class:`_FitOperator` of the pupil points (x, y), keyed by their values."""
+    global fit_operator_builds
+    import hashlib
+
+    key = (x.size, hashlib.blake2b(np.ascontiguousarray(x).tobytes()
+                                   + np.ascontiguousarray(y).tobytes(),
+                                   digest_size=16).digest())
+    op = _FIT_CACHE.get(key)
+    if op is None:
+        op = _FitOperator(x, y)
+        fit_operator_builds += 1
+        if len(_FIT_CACHE) >= _FIT_CACHE_SIZE:
+            _FIT_CACHE.pop(next(iter(_FIT_CACHE)))
+        _FIT_CACHE[key] = op
+    return op
+
+
 def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
             band: str, wavelength_nm: float, field_deg: tuple[float, float]):
-    hx, hy, ok, transmitted = _trace_defocused(inst, band, wavelength_nm, field_deg, side,
-                                               defocus_mm, x, y)
     # Smooth fit over every traced point (the computation region extends a little beyond the
     # pupil; rays there are traced through the same surfaces, so the fit interpolates).
-    rmax = float(np.sqrt((x * x + y * y).max())) * 1.0001
-    jfit = (_FIT_ORDER + 1) * (_FIT_ORDER + 2) // 2
-    basis = zernike_basis(x / rmax, y / rmax, jmax=jfit, eps=0.0)
-    # 120 smooth terms need far fewer than the ~15k traced points: fit on a regular subset
-    # (both coordinates in one solve), then evaluate everywhere.
-    fit_idx = np.flatnonzero(ok)[::3]
-    coef, *_ = np.linalg.lstsq(basis.z[:, fit_idx].T.astype(float),
-                               np.stack([hx[fit_idx], hy[fit_idx]], axis=1), rcond=None)
-    cx, cy = coef[:, 0], coef[:, 1]
-    fx, fy = cx @ basis.z, cy @ basis.z
-    rms = float(np.sqrt(np.mean((fx - hx)[ok] ** 2 + (fy - hy)[ok] ** 2)))
-    # Derivatives of the fitted polynomials w.r.t. the reduced pupil coordinates.
-    jxx, jxy = cx @ basis.dx / rmax, cx @ basis.dy / rmax
-    jyx, jyy = cy @ basis.dx / rmax, cy @ basis.dy / rmax
-    return (fx, fy, jxx, jxy, jyx, jyy), transmitted, rms
+    op = _fit_operator(x, y)
+    annulus = _annulus(inst, x, y)
+    fit = op.fit_idx
+    hx_f, hy_f, ok_f, tr_f = _trace_defocused(inst, band, wavelength_nm, field_deg, side,
+                                              defocus_mm, x[fit], y[fit])
+    if op.lattice is not None and ok_f.all():
+        # Only the fit subset is needed for the mapping; the vignetting of the other annulus
+        # points follows from their traced neighbours, except near a vignetting edge, where
+        # they are traced too.
+        known = np.zeros(x.size, bool)
+        known[fit] = True
+        transmitted = np.zeros(x.size, bool)
+        transmitted[fit] = tr_f
+        state = op.infer_transmitted(known, transmitted, annulus)
+        todo = np.flatnonzero(state < 0)
+        if todo.size:
+            *_, tr_e = _trace_defocused(inst, band, wavelength_nm, field_deg, side,
+                                        defocus_mm, x[todo], y[todo])
+            state[todo] = tr_e  # a failed ray is not transmitted (tr_e is False there)
+        transmitted = state > 0
+        coef = op.pinv @ np.stack([hx_f, hy_f], axis=1)
+        hx, hy, ok = hx_f, hy_f, ok_f
+        at = fit
+    else:
+        hx, hy, ok, transmitted = _trace_defocused(inst, band, wavelength_nm, field_deg, side,
+                                                   defocus_mm, x, y)
+        coef = op.coefficients(hx, hy, ok)
+        at = slice(None)
+    # Evaluate the fits and their derivatives w.r.t. the reduced pupil coordinates.
+    fx, fy = coef.T @ op.z
+    jxx, jyx = coef.T @ op.dx
+    jxy, jyy = coef.T @ op.dy
+    # Residual over the traced points (the fit subset when only that was traced).
+    rms = float(np.sqrt(np.mean((fx[at] - hx)[ok] ** 2 + (fy[at] - hy)[ok] ** 2)))
+    return (fx, fy, jxx, jxy, jyx, jyy), transmitted & annulus, rms
 
 
 # -- the paper's poly10 tables (§3.3) ------------------------------------------------------
@@ -396,5 +537,79 @@ def design_zernikes_nm(inst: Instrument, band: str, wavelength_nm: float,
     z = batoid.zernike(tel, np.deg2rad(field_deg[0]), np.deg2rad(field_deg[1]), wl,
                        jmax=jmax, eps=inst.obscuration, nx=128)
     out[:] = z[1:] * wavelength_nm
+    out.setflags(write=False)
+    return out
+
+
+# -- design wavefront interpolated in field ----------------------------------------------
+#
+# ``design_zernikes_nm`` traces a 128x128 in-focus pupil per field (~30 ms), and every pair
+# of new star fields has a new mid-point.  The design wavefront is smooth in field: over the
+# corners' 0.125 deg tiles a quartic in field leaves ~0.1 nm (near the pixelation of the
+# direct fit itself).  The field plane is cut into square tiles; each tile's design
+# Zernikes are fitted once by a 2-D quartic to a 5x5 grid of direct evaluations, and a tile
+# whose fit leaves more than _DESIGN_TILE_MAX_RESID_NM at its nodes falls back to the
+# direct trace.  A tile costs 25 direct traces (~0.7 s), so it is fitted only at the
+# _DESIGN_TILE_AFTER-th distinct field asking for it; earlier fields are traced directly
+# (the first estimate of a process stays as fast as before).  Whichever is used, a pair's
+# departure from design (estimate minus this design wavefront) does not change: the design
+# wavefront is only added back at the end.
+
+_DESIGN_TILE_NODES = 5
+_DESIGN_TILE_DEGREE = 4
+_DESIGN_TILE_MAX_RESID_NM = 0.25
+_DESIGN_TILE_AFTER = 3
+_design_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
+# Number of tiles fitted (tests read it to check the cache is reused).
+design_tile_builds = 0
+
+
+def _tile_monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.stack([u**a * v**(d - a) for d in range(_DESIGN_TILE_DEGREE + 1)
+                     for a in range(d + 1)], axis=-1)
+
+
+@lru_cache(maxsize=64)
+def _design_tile(inst: Instrument, band: str, wavelength_nm: float, tile: tuple[int, int],
+                 tile_deg: float, jmax: int) -> np.ndarray | None:
+    """Polynomial coefficients (n_mono, jmax) of one tile's design Zernikes, or None."""
+    global design_tile_builds
+    design_tile_builds += 1
+    t = np.linspace(-1.0, 1.0, _DESIGN_TILE_NODES)
+    u, v = (a.ravel() for a in np.meshgrid(t, t))
+    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
+    half = 0.5 * tile_deg
+    z = np.array([design_zernikes_nm(inst, band, wavelength_nm,
+                                     (float(cx + half * a), float(cy + half * b)), jmax)
+                  for a, b in zip(u, v, strict=True)])
+    mono = _tile_monomials(u, v)
+    coef, *_ = np.linalg.lstsq(mono, z, rcond=None)
+    if np.abs(mono @ coef - z).max() > _DESIGN_TILE_MAX_RESID_NM:
+        return None
+    coef.setflags(write=False)
+    return coef
+
+
+def design_zernikes_tiled(inst: Instrument, band: str, wavelength_nm: float,
+                          field_deg: tuple[float, float], jmax: int,
+                          tile_deg: float) -> np.ndarray:
+    """:func:`design_zernikes_nm` interpolated within ``tile_deg`` tiles (0: direct)."""
+    if inst.mapping != "batoid" or tile_deg <= 0:
+        return design_zernikes_nm(inst, band, wavelength_nm, field_deg, jmax)
+    fx, fy = float(field_deg[0]), float(field_deg[1])
+    tile = (int(np.floor(fx / tile_deg)), int(np.floor(fy / tile_deg)))
+    key = (inst, band, float(wavelength_nm), tile, float(tile_deg), int(jmax))
+    seen = _design_tile_requests.setdefault(key, set())
+    if (fx, fy) not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
+        seen.add((fx, fy))
+    if (fx, fy) in seen:  # one of the tile's first fields (always the direct value)
+        return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
+    coef = _design_tile(*key)
+    if coef is None:
+        return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
+    half = 0.5 * tile_deg
+    u = np.array((fx - (tile[0] + 0.5) * tile_deg) / half)
+    v = np.array((fy - (tile[1] + 0.5) * tile_deg) / half)
+    out = _tile_monomials(u, v) @ coef
     out.setflags(write=False)
     return out

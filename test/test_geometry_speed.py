@@ -1,0 +1,179 @@
+"""The cached field-independent ray-hit fit (cwfs_ros.core.mapping._FitOperator).
+
+A new star field must cost one ray trace plus small matrix products, and give the same
+mapping and the same estimate as a fit solved from scratch.  The expected values here come
+from the raw ray trace and an independent ``numpy.linalg.lstsq`` fit, not from the cached
+operator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from cwfs_ros.core import estimate_wavefront, load_instrument
+from cwfs_ros.core import mapping as mp
+from cwfs_ros.core.estimator import load_algorithm, pair_geometry
+from cwfs_ros.core.zernike import zernike_basis
+from cwfs_ros.paths import config_dir
+
+R00 = yaml.safe_load((config_dir() / "sensors" / "lsst_corners.yaml").read_text())["corners"]["R00"]
+FI0, FE0 = np.array(R00["intra"]["field_deg"]), np.array(R00["extra"]["field_deg"])
+WL = 622.0
+
+
+def _pupil_points() -> tuple[np.ndarray, np.ndarray]:
+    """A pupil grid like the estimator's (annulus plus a boundary), 1/61 per sample."""
+    n, sp = 147, 1.0 / 61.0
+    ax = (np.arange(n) - (n - 1) / 2.0) * sp
+    gx, gy = np.meshgrid(ax, ax)
+    r = np.hypot(gx, gy).ravel()
+    keep = (r <= 1.19) & (r >= 0.50)
+    return gx.ravel()[keep], gy.ravel()[keep]
+
+
+def _reference_fit(x, y, hx, hy, ok):
+    """Independent least-squares fit of the ray hits (order 14 circle Zernikes)."""
+    rmax = float(np.sqrt((x * x + y * y).max())) * 1.0001
+    b = zernike_basis(x / rmax, y / rmax, jmax=120, eps=0.0)
+    idx = np.flatnonzero(ok)[::3]
+    coef, *_ = np.linalg.lstsq(b.z[:, idx].T, np.stack([hx[idx], hy[idx]], 1), rcond=None)
+    cx, cy = coef[:, 0], coef[:, 1]
+    return (cx @ b.z, cy @ b.z, cx @ b.dx / rmax, cx @ b.dy / rmax, cy @ b.dx / rmax,
+            cy @ b.dy / rmax)
+
+
+def test_fast_fit_matches_direct_trace_at_random_fields() -> None:
+    inst = load_instrument("lsst")
+    x, y = _pupil_points()
+    rng = np.random.default_rng(11)
+    for k in range(3):
+        side = ("intra", "extra")[k % 2]
+        f0 = FI0 if side == "intra" else FE0
+        fld = tuple(float(v) for v in f0 + rng.uniform([-0.03, -0.06], [0.03, 0.06]))
+        m = mp.nominal_mapping(inst, side, x, y, defocus_mm=1.5, band="r", wavelength_nm=WL,
+                               field_deg=fld)
+        hx, hy, ok, transmitted = mp._trace_defocused(inst, "r", WL, fld, side, 1.5, x, y)
+        # Against the raw ray hits: the fit is far inside 1e-3 px on the annulus.
+        r2 = x * x + y * y
+        ann = (r2 <= 1.0) & (r2 >= inst.obscuration**2)
+        assert np.abs(m.x_px - hx)[ok & ann].max() < 2e-3
+        assert np.abs(m.y_px - hy)[ok & ann].max() < 2e-3
+        # Against an independent fit solved from scratch: equal to rounding.
+        fx, fy, jxx, _, _, jyy = _reference_fit(x, y, hx, hy, ok)
+        assert np.abs(m.x_px - fx).max() < 1e-6 and np.abs(m.y_px - fy).max() < 1e-6
+        assert np.abs(m.jxx - jxx).max() < 1e-5 and np.abs(m.jyy - jyy).max() < 1e-5
+        np.testing.assert_array_equal(m.transmitted, transmitted & ann)
+
+
+def test_fit_operator_is_built_once_per_pupil_grid() -> None:
+    inst = load_instrument("lsst")
+    x, y = _pupil_points()
+    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL)
+    mp.nominal_mapping(inst, "intra", x, y, field_deg=tuple(FI0), **kw)
+    builds = mp.fit_operator_builds
+    op = mp._fit_operator(x, y)
+    for d in (0.01, -0.02, 0.03):
+        mp.nominal_mapping(inst, "intra", x, y, field_deg=(FI0[0] + d, FI0[1] - d), **kw)
+        mp.nominal_mapping(inst, "extra", x, y, field_deg=(FE0[0] - d, FE0[1] + d), **kw)
+    assert mp.fit_operator_builds == builds  # new fields reuse the operator
+    assert mp._fit_operator(x.copy(), y.copy()) is op  # keyed by the points' values
+    mp._fit_operator(x[1:], y[1:])  # other points: another operator
+    assert mp.fit_operator_builds == builds + 1
+
+
+def test_fit_with_failed_rays_falls_back_to_a_direct_solve() -> None:
+    x, y = _pupil_points()
+    op = mp._fit_operator(x, y)
+    rng = np.random.default_rng(2)
+    hx, hy = 60.0 * x + 0.3 * x * y, -61.0 * y + 0.2 * x * x
+    ok = rng.random(x.size) > 0.01
+    hx[~ok] = 1e6  # garbage where rays failed must not enter the fit
+    coef = op.coefficients(hx, hy, ok)
+    np.testing.assert_allclose(coef.T @ op.z, np.stack([60.0 * x + 0.3 * x * y,
+                                                        -61.0 * y + 0.2 * x * x]), atol=1e-8)
+
+
+@pytest.mark.parametrize("solver", ["lsq"])
+def test_estimate_equals_the_from_scratch_fit(monkeypatch: pytest.MonkeyPatch,
+                                              solver: str) -> None:
+    """One ray-traced pair at random corner fields: the same Zernikes as a direct fit."""
+    from cwfs_ros.sim.render import render_donut
+    from cwfs_ros.sim.telescope import perturbed_telescope
+
+    rng = np.random.default_rng(5)
+    fi = tuple(float(v) for v in FI0 + rng.uniform([-0.03, -0.06], [0.03, 0.06]))
+    fe = tuple(float(v) for v in FE0 + rng.uniform([-0.03, -0.06], [0.03, 0.06]))
+    dof = np.zeros(50)
+    dof[5] = 15.0
+    tel = perturbed_telescope(dof, band="r")
+    intra, extra = (render_donut(tel, f, dz, wavelength_nm=WL, npix=160, n_photons=1e6,
+                                 rng=rng, poisson=False) for f, dz in ((fi, -1.5), (fe, 1.5)))
+    pair_geometry.cache_clear()
+    fast = estimate_wavefront(intra, extra, field_intra_deg=fi, field_extra_deg=fe,
+                              solver=solver)
+
+    def direct(inst, side, defocus_mm, x, y, band, wavelength_nm, field_deg):
+        hx, hy, ok, transmitted = mp._trace_defocused(inst, band, wavelength_nm, field_deg,
+                                                      side, defocus_mm, x, y)
+        parts = _reference_fit(x, y, hx, hy, ok)
+        return parts, transmitted, 0.0
+
+    monkeypatch.setattr(mp, "_batoid", direct)
+    pair_geometry.cache_clear()
+    try:
+        ref = estimate_wavefront(intra, extra, field_intra_deg=fi, field_extra_deg=fe,
+                                 solver=solver)
+    finally:
+        pair_geometry.cache_clear()
+    assert np.abs(fast.zernikes_nm - ref.zernikes_nm).max() < 0.5
+    assert np.abs(ref.zernikes_nm).max() > 20  # a real signal, not two zeros
+    assert load_algorithm(solver).jmax == fast.zernikes_all_nm.size
+
+
+def test_design_tiles_match_the_direct_trace_and_are_reused() -> None:
+    """Interpolated design Zernikes vs batoid's own fit at random corner mid-points."""
+    import batoid
+
+    from cwfs_ros.sim.telescope import load_lsst
+
+    inst = load_instrument("lsst")
+    tel = load_lsst("r")
+    mid = np.array(R00["mid_deg"])
+    rng = np.random.default_rng(4)
+    mp.design_zernikes_tiled(inst, "r", WL, tuple(mid), 22, 0.125)
+    builds = mp.design_tile_builds
+    for _ in range(3):
+        fx, fy = (float(v) for v in mid + rng.uniform([-0.03, -0.05], [0.03, 0.05]))
+        tiled = mp.design_zernikes_tiled(inst, "r", WL, (fx, fy), 22, 0.125)
+        direct = batoid.zernike(tel, np.deg2rad(fx), np.deg2rad(fy), WL * 1e-9, jmax=22,
+                                eps=inst.obscuration, nx=128)[1:] * WL
+        assert np.abs(tiled - direct)[3:].max() < 0.3
+        assert np.abs(direct[3:]).max() > 50  # large design aberrations at the corners
+    # The corner's mid-points share one or two tiles, each fitted once (at its third field).
+    assert mp.design_tile_builds - builds <= 1
+    n = mp.design_tile_builds
+    later = (fx + 1e-4, fy)
+    value = mp.design_zernikes_tiled(inst, "r", WL, later, 22, 0.125)
+    assert mp.design_tile_builds == n
+    assert not np.array_equal(value, mp.design_zernikes_nm(inst, "r", WL, later, 22))
+    # 0 disables the tiles: the direct trace, bit for bit.
+    np.testing.assert_array_equal(mp.design_zernikes_tiled(inst, "r", WL, (fx, fy), 22, 0.0),
+                                  mp.design_zernikes_nm(inst, "r", WL, (fx, fy), 22))
+
+
+def test_distance_transform_dilation_equals_binary_dilation() -> None:
+    from scipy.ndimage import binary_dilation
+
+    from cwfs_ros.core.estimator import _dilate
+
+    rng = np.random.default_rng(8)
+    yy, xx = np.mgrid[:120, :120]
+    masks = [rng.random((120, 120)) < 0.002, rng.random((90, 90)) < 0.3,
+             np.hypot(xx - 57.3, yy - 61.0) < 37.0, np.zeros((40, 40), bool)]
+    for m in masks:
+        for r in (1, 4, 12):
+            yd, xd = np.mgrid[-r:r + 1, -r:r + 1]
+            disk = xd * xd + yd * yd <= r * r
+            np.testing.assert_array_equal(_dilate(m, r), binary_dilation(m, structure=disk))
