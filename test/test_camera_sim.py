@@ -146,6 +146,12 @@ def test_visit_images_and_truth(camera):
     wait_for(lambda: any(kv.key == "visits_rendered" and kv.value == "1"
                          for d in list(t.diag) for st in d.status for kv in st.values),
              5, "diagnostics reporting the visit")
+    # ... with the visit's true wavefront error: mean over corners of sqrt(sum of squares).
+    d = (want - want_intr).reshape(4, 19)
+    wfe = float(np.mean(np.sqrt(np.sum(d ** 2, axis=1))))
+    wait_for(lambda: any(kv.key == "true_wavefront_error_nm" and kv.value == f"{wfe:.1f}"
+                         for d in list(t.diag) for st in d.status for kv in st.values),
+             5, "diagnostics reporting the true wavefront error")
 
 
 def test_corrections_change_the_state(camera):

@@ -37,7 +37,7 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.visits import CORNERS
-from cwfs_ros.sim.perturbation import RIGID_SCALE
+from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
 from cwfs_ros.sim.visit import (
     DonutSpec,
@@ -125,6 +125,7 @@ class CameraSimNode(Node):
         self.last_render_s = float("nan")
         self.last_status = "no visit yet"
         self.last_frame_stars: dict = {}
+        self.last_true_error_nm = float("nan")
         self._busy = False
         self._closing = False
         self._thread: threading.Thread | None = None
@@ -332,8 +333,12 @@ class CameraSimNode(Node):
                 self.stats["visits_rendered"] += 1
                 self.last_render_s = dt
                 self.last_status = f"visit {visit} published"
-            self.get_logger().info(f"visit {visit} published (rendered in {dt:.1f} s, "
-                                   f"|dof| {np.linalg.norm(dof):.4g})")
+            wfe = wavefront_error_nm(truth.zernikes_nm, truth.intrinsic_nm)
+            with self._lock:
+                self.last_true_error_nm = wfe
+            self.get_logger().info(f"visit {visit} published (rendered in {dt:.1f} s, true "
+                                   f"wavefront error {wfe:.1f} nm, |dof| "
+                                   f"{np.linalg.norm(dof):.4g})")
         except Exception as exc:  # noqa: BLE001 - a failed visit must not kill the node
             with self._lock:
                 self.stats["visits_failed"] += 1
@@ -397,6 +402,7 @@ class CameraSimNode(Node):
                       ("actuator_noise", self._param("actuator_noise")),
                       ("dof_norm", f"{np.linalg.norm(self._dof):.4g}"),
                       ("last_render_s", f"{self.last_render_s:.2f}"),
+                      ("true_wavefront_error_nm", f"{self.last_true_error_nm:.1f}"),
                       ("last_status", self.last_status)]
             failed = stats["visits_failed"] > 0 and "failed" in self.last_status
         values += self.ignored.key_values()
