@@ -114,7 +114,7 @@ def test_estimate_equals_the_from_scratch_fit(monkeypatch: pytest.MonkeyPatch,
     fast = estimate_wavefront(intra, extra, field_intra_deg=fi, field_extra_deg=fe,
                               solver=solver)
 
-    def direct(inst, side, defocus_mm, x, y, band, wavelength_nm, field_deg):
+    def direct(inst, side, defocus_mm, x, y, band, wavelength_nm, field_deg, tile_deg=0.0):
         hx, hy, ok, transmitted = mp._trace_defocused(inst, band, wavelength_nm, field_deg,
                                                       side, defocus_mm, x, y)
         parts = _reference_fit(x, y, hx, hy, ok)
@@ -177,3 +177,30 @@ def test_distance_transform_dilation_equals_binary_dilation() -> None:
             yd, xd = np.mgrid[-r:r + 1, -r:r + 1]
             disk = xd * xd + yd * yd <= r * r
             np.testing.assert_array_equal(_dilate(m, r), binary_dilation(m, structure=disk))
+
+
+def test_map_tiles_match_the_direct_trace_and_are_reused() -> None:
+    """Field-tiled batoid mapping vs the direct trace at random fields of one half-chip."""
+    inst = load_instrument("lsst")
+    x, y = _pupil_points()
+    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL)
+    r2 = x * x + y * y
+    ann = (r2 <= 1.0) & (r2 >= inst.obscuration**2)
+    rng = np.random.default_rng(9)
+    # Fields inside one tile: the first two are traced directly, the tile is fitted at the
+    # third, and later fields reuse it.
+    t = 0.125
+    lo = np.floor(FE0 / t) * t
+    fields = [tuple(float(v) for v in lo + rng.uniform(0.01, t - 0.01, 2)) for _ in range(5)]
+    builds = None
+    for k, fld in enumerate(fields):
+        tiled = mp.nominal_mapping(inst, "extra", x, y, field_deg=fld, tile_deg=t, **kw)
+        direct = mp.nominal_mapping(inst, "extra", x, y, field_deg=fld, **kw)
+        if k == 2:
+            builds = mp.map_tile_builds
+        assert np.abs(tiled.x_px - direct.x_px)[ann].max() < 1e-5
+        assert np.abs(tiled.y_px - direct.y_px)[ann].max() < 1e-5
+        assert np.abs(tiled.jxx - direct.jxx).max() < 1e-4
+        np.testing.assert_array_equal(tiled.transmitted, direct.transmitted)
+        assert (~tiled.transmitted[ann]).any()  # vignetted: the masks are a real check
+    assert mp.map_tile_builds == builds

@@ -82,6 +82,9 @@ class AlgorithmConfig:
     # Side (deg) of the field tiles over which the design wavefront is interpolated
     # (:func:`.mapping.design_zernikes_tiled`; ~0.1 nm from the direct trace); 0: direct.
     design_tile_deg: float = 0.0
+    # Side (deg) of the field tiles over which the batoid mapping is interpolated
+    # (:func:`.mapping._batoid_tiled`); 0: every star field traced directly.
+    map_tile_deg: float = 0.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -110,6 +113,8 @@ class AlgorithmConfig:
         if not (isinstance(self.design_tile_deg, (int, float))
                 and 0 <= self.design_tile_deg <= 1):
             problems.append(f"design_tile_deg must be in [0, 1], got {self.design_tile_deg!r}")
+        if not (isinstance(self.map_tile_deg, (int, float)) and 0 <= self.map_tile_deg <= 1):
+            problems.append(f"map_tile_deg must be in [0, 1], got {self.map_tile_deg!r}")
         if self.feedback_basis not in ("zernike", "orthonormal"):
             problems.append(f"feedback_basis must be 'zernike' or 'orthonormal', got "
                             f"{self.feedback_basis!r}")
@@ -329,7 +334,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     r = np.hypot(gx, gy).ravel()
     cand = np.flatnonzero((r <= extent) & (r >= inst.obscuration - (extent - 1.0)))
     x, y = gx.ravel()[cand], gy.ravel()[cand]
-    kw = dict(defocus_mm=defocus_mm, band=band, wavelength_nm=wavelength_nm)
+    kw = dict(defocus_mm=defocus_mm, band=band, wavelength_nm=wavelength_nm,
+              tile_deg=algo.map_tile_deg)
     m_in = nominal_mapping(inst, "intra", x, y, field_deg=field_intra_deg, **kw)
     m_ex = nominal_mapping(inst, "extra", x, y, field_deg=field_extra_deg, **kw)
     grid_in = np.zeros(n * n, bool)

@@ -310,11 +310,17 @@ def _fit_operator(x: np.ndarray, y: np.ndarray) -> _FitOperator:
 
 
 def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
-            band: str, wavelength_nm: float, field_deg: tuple[float, float]):
+            band: str, wavelength_nm: float, field_deg: tuple[float, float],
+            tile_deg: float = 0.0):
     # Smooth fit over every traced point (the computation region extends a little beyond the
     # pupil; rays there are traced through the same surfaces, so the fit interpolates).
     op = _fit_operator(x, y)
     annulus = _annulus(inst, x, y)
+    if tile_deg > 0 and op.lattice is not None:
+        tiled = _batoid_tiled(inst, side, defocus_mm, x, y, band, wavelength_nm, field_deg,
+                              tile_deg, op, annulus)
+        if tiled is not None:
+            return tiled
     fit = op.fit_idx
     hx_f, hy_f, ok_f, tr_f = _trace_defocused(inst, band, wavelength_nm, field_deg, side,
                                               defocus_mm, x[fit], y[fit])
@@ -348,6 +354,103 @@ def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np
     # Residual over the traced points (the fit subset when only that was traced).
     rms = float(np.sqrt(np.mean((fx[at] - hx)[ok] ** 2 + (fy[at] - hy)[ok] ** 2)))
     return (fx, fy, jxx, jxy, jyx, jyy), transmitted & annulus, rms
+
+
+# -- the batoid mapping interpolated in field ------------------------------------------------
+#
+# The fit coefficients of a side's mapping are smooth in field: over a 0.125 deg tile a
+# quartic in field reproduces the direct fit to ~1e-7 px (measured at random corner
+# fields).  Each tile is fitted once from a 5x5 grid of full traces, which also give the
+# vignetting at the nodes: an annulus point transmitted (or vignetted) at every node is
+# taken as such over the tile -- the field set in which a vignetting circle (pupil-sized,
+# moving linearly with field) covers a pupil point is a disk far larger than the tile -- and
+# only the points whose state changes across the tile are traced per star.  A tile whose
+# nodes have failed rays or whose coefficient fit leaves more than _MAP_TILE_MAX_RESID_PX at
+# its nodes falls back to the direct path, as do the tile's first _DESIGN_TILE_AFTER - 1
+# fields (the tile costs 50 full traces, ~1.5 s).
+
+_MAP_TILE_NODES = 5
+_MAP_TILE_MAX_RESID_PX = 1e-4
+_map_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
+_MAP_TILE_CACHE: dict[tuple, tuple | None] = {}
+_MAP_TILE_CACHE_SIZE = 64
+# Number of mapping tiles fitted (tests read it to check the cache is reused).
+map_tile_builds = 0
+
+
+def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
+              band: str, wavelength_nm: float, tile: tuple[int, int], tile_deg: float,
+              op: _FitOperator, annulus: np.ndarray) -> tuple | None:
+    """(coefficient polynomial, always-transmitted, never-transmitted, node rms) or None."""
+    global map_tile_builds
+    map_tile_builds += 1
+    t = np.linspace(-1.0, 1.0, _MAP_TILE_NODES)
+    u, v = (a.ravel() for a in np.meshgrid(t, t))
+    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
+    half = 0.5 * tile_deg
+    coefs, masks, rms = [], [], []
+    for a, b in zip(u, v, strict=True):
+        hx, hy, ok, tr = _trace_defocused(inst, band, wavelength_nm,
+                                          (float(cx + half * a), float(cy + half * b)), side,
+                                          defocus_mm, x, y)
+        if not ok[op.fit_idx].all():
+            return None
+        c = op.pinv @ np.stack([hx, hy], axis=1)[op.fit_idx]
+        coefs.append(c.ravel())
+        masks.append(tr & annulus)
+        fx, fy = c.T @ op.z[:, op.fit_idx]
+        rms.append(float(np.sqrt(np.mean((fx - hx[op.fit_idx]) ** 2
+                                         + (fy - hy[op.fit_idx]) ** 2))))
+    coefs = np.array(coefs)
+    mono = _tile_monomials(u, v)
+    poly, *_ = np.linalg.lstsq(mono, coefs, rcond=None)
+    dev = ((mono @ poly - coefs).reshape(len(u), -1, 2).transpose(0, 2, 1) @ op.z)
+    if np.abs(dev[:, :, annulus]).max() > _MAP_TILE_MAX_RESID_PX:
+        return None
+    masks = np.array(masks)
+    always, never = masks.all(axis=0), ~masks.any(axis=0)
+    for a in (poly, always, never):
+        a.setflags(write=False)
+    return poly, always, never, max(rms)
+
+
+def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
+                  y: np.ndarray, band: str, wavelength_nm: float,
+                  field_deg: tuple[float, float], tile_deg: float, op: _FitOperator,
+                  annulus: np.ndarray):
+    """The batoid mapping from its field tile (see above), or None for the direct path."""
+    fx, fy = float(field_deg[0]), float(field_deg[1])
+    tile = (int(np.floor(fx / tile_deg)), int(np.floor(fy / tile_deg)))
+    key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile, float(tile_deg),
+           op)
+    seen = _map_tile_requests.setdefault(key, set())
+    if (fx, fy) not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
+        seen.add((fx, fy))
+    if (fx, fy) in seen:
+        return None
+    if key not in _MAP_TILE_CACHE:
+        if len(_MAP_TILE_CACHE) >= _MAP_TILE_CACHE_SIZE:
+            _MAP_TILE_CACHE.pop(next(iter(_MAP_TILE_CACHE)))
+        _MAP_TILE_CACHE[key] = _map_tile(inst, side, defocus_mm, x, y, band, wavelength_nm,
+                                         tile, tile_deg, op, annulus)
+    entry = _MAP_TILE_CACHE[key]
+    if entry is None:
+        return None
+    poly, always, never, rms = entry
+    half = 0.5 * tile_deg
+    u = np.array((fx - (tile[0] + 0.5) * tile_deg) / half)
+    v = np.array((fy - (tile[1] + 0.5) * tile_deg) / half)
+    coef = (_tile_monomials(u, v) @ poly).reshape(-1, 2)
+    transmitted = always.copy()
+    todo = np.flatnonzero(~always & ~never)
+    if todo.size:
+        *_, tr = _trace_defocused(inst, band, wavelength_nm, (fx, fy), side, defocus_mm,
+                                  x[todo], y[todo])
+        transmitted[todo] = tr
+    fxm, fym = coef.T @ op.z
+    jxx, jyx = coef.T @ op.dx
+    jxy, jyy = coef.T @ op.dy
+    return (fxm, fym, jxx, jxy, jyx, jyy), transmitted & annulus, rms
 
 
 # -- the paper's poly10 tables (§3.3) ------------------------------------------------------
@@ -481,7 +584,8 @@ def _poly10(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np
 def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *,
                     defocus_mm: float, band: str | None = None,
                     wavelength_nm: float | None = None,
-                    field_deg: tuple[float, float] = (0.0, 0.0)) -> ImageMapping:
+                    field_deg: tuple[float, float] = (0.0, 0.0),
+                    tile_deg: float = 0.0) -> ImageMapping:
     """The unperturbed mapping of ``inst`` for one image side at pupil points (x, y).
 
     Args:
@@ -491,6 +595,8 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
         defocus_mm: |detector offset| l.
         band, wavelength_nm: optical band and wavelength (batoid model only).
         field_deg: field angle (x, y) of the star in degrees (batoid and poly10 models).
+        tile_deg: batoid only: interpolate the mapping within field tiles of this side
+            (:func:`_batoid_tiled`); 0 traces every field directly.
     """
     x = np.asarray(x, dtype=float).ravel()
     y = np.asarray(y, dtype=float).ravel()
@@ -508,8 +614,12 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
     else:
         band = band or inst.default_band
         wl = inst.wavelength_nm(band, wavelength_nm)
-        parts, transmitted, rms = _batoid(inst, side, defocus_mm, x, y, band, wl,
-                                          (float(field_deg[0]), float(field_deg[1])))
+        args = (inst, side, defocus_mm, x, y, band, wl,
+                (float(field_deg[0]), float(field_deg[1])))
+        if tile_deg > 0:
+            parts, transmitted, rms = _batoid(*args, tile_deg=float(tile_deg))
+        else:
+            parts, transmitted, rms = _batoid(*args)
         transmitted = transmitted & _annulus(inst, x, y)
     return ImageMapping(side, *parts, transmitted=transmitted,
                         c_px_per_nm=_c_px_per_nm(inst, side, defocus_mm), fit_rms_px=rms)
