@@ -370,27 +370,8 @@ class CornerPool:
         If the worker process dies, the future resolves to an invalid outcome
         (``worker_crashed``) and the slot is restarted for the next job.
         """
-        if job.corner not in self.affinity:
-            raise ConfigError(f"corner {job.corner!r} is not served by this pool")
-        out: Future = Future()
-        inner = self._submit(job.corner, run_corner_job, job)
-        i = self.affinity[job.corner]
-
-        def done(f: Future) -> None:
-            try:
-                out.set_result(f.result())
-            except BaseException as exc:  # noqa: BLE001
-                if isinstance(exc, BrokenProcessPool):
-                    ex = self._slots[i]
-                    if ex is not None:
-                        self._restart(i, ex)
-                out.set_result(invalid_outcome(
-                    job.corner, job.stamp_ns, "worker_crashed",
-                    f"the worker process failed ({type(exc).__name__}: {exc})",
-                    job.field_intra_deg, job.field_extra_deg, job.settings.solver))
-
-        inner.add_done_callback(done)
-        return out
+        return self._guarded(job.corner, job.stamp_ns, run_corner_job, job,
+                             (job.field_intra_deg, job.field_extra_deg), job.settings.solver)
 
     def submit_frames(self, job: Any) -> Future:
         """Queue a :class:`~cwfs_ros.core.selection.CornerFrameJob` (two full half-chip
@@ -398,12 +379,20 @@ class CornerPool:
         carrying the combination of every usable donut pair (``n_pairs``,
         ``uncertainty_nm``). A dead worker gives ``worker_crashed``, as for :meth:`submit`.
         """
-        if job.corner not in self.affinity:
-            raise ConfigError(f"corner {job.corner!r} is not served by this pool")
-        out: Future = Future()
-        inner = self._submit(job.corner, run_frame_job, job)
-        i = self.affinity[job.corner]
         nan_field = (float("nan"), float("nan"))
+        return self._guarded(job.corner, job.stamp_ns, run_frame_job, job,
+                             (nan_field, nan_field), job.settings.solver)
+
+    def _guarded(self, corner: str, stamp_ns: int, fn: Callable, job: Any,
+                 fields: tuple[tuple[float, float], tuple[float, float]],
+                 solver: str) -> Future:
+        """Run ``fn(job)`` on the corner's worker; a future of its CornerOutcome, or of an
+        invalid ``worker_crashed`` outcome (and a restarted slot) if the worker dies."""
+        if corner not in self.affinity:
+            raise ConfigError(f"corner {corner!r} is not served by this pool")
+        out: Future = Future()
+        inner = self._submit(corner, fn, job)
+        i = self.affinity[corner]
 
         def done(f: Future) -> None:
             try:
@@ -414,9 +403,9 @@ class CornerPool:
                     if ex is not None:
                         self._restart(i, ex)
                 out.set_result(invalid_outcome(
-                    job.corner, job.stamp_ns, "worker_crashed",
+                    corner, stamp_ns, "worker_crashed",
                     f"the worker process failed ({type(exc).__name__}: {exc})",
-                    nan_field, nan_field, job.settings.solver))
+                    fields[0], fields[1], solver))
 
         inner.add_done_callback(done)
         return out
