@@ -384,15 +384,11 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     """(coefficient polynomial, always-transmitted, never-transmitted, node rms) or None."""
     global map_tile_builds
     map_tile_builds += 1
-    t = np.linspace(-1.0, 1.0, _MAP_TILE_NODES)
-    u, v = (a.ravel() for a in np.meshgrid(t, t))
-    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
-    half = 0.5 * tile_deg
+    u, v, nodes = _tile_nodes(tile, tile_deg, _MAP_TILE_NODES)
     coefs, masks, rms = [], [], []
-    for a, b in zip(u, v, strict=True):
-        hx, hy, ok, tr = _trace_defocused(inst, band, wavelength_nm,
-                                          (float(cx + half * a), float(cy + half * b)), side,
-                                          defocus_mm, x, y)
+    for node in nodes:
+        hx, hy, ok, tr = _trace_defocused(inst, band, wavelength_nm, node, side, defocus_mm,
+                                          x, y)
         if not ok[op.fit_idx].all():
             return None
         c = op.pinv @ np.stack([hx, hy], axis=1)[op.fit_idx]
@@ -420,13 +416,10 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
                   annulus: np.ndarray):
     """The batoid mapping from its field tile (see above), or None for the direct path."""
     fx, fy = float(field_deg[0]), float(field_deg[1])
-    tile = (int(np.floor(fx / tile_deg)), int(np.floor(fy / tile_deg)))
+    tile = _tile_of((fx, fy), tile_deg)
     key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile, float(tile_deg),
            op)
-    seen = _map_tile_requests.setdefault(key, set())
-    if (fx, fy) not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
-        seen.add((fx, fy))
-    if (fx, fy) in seen:
+    if not _tile_wanted(_map_tile_requests, key, (fx, fy)):
         return None
     if key not in _MAP_TILE_CACHE:
         if len(_MAP_TILE_CACHE) >= _MAP_TILE_CACHE_SIZE:
@@ -437,10 +430,7 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
     if entry is None:
         return None
     poly, always, never, rms = entry
-    half = 0.5 * tile_deg
-    u = np.array((fx - (tile[0] + 0.5) * tile_deg) / half)
-    v = np.array((fy - (tile[1] + 0.5) * tile_deg) / half)
-    coef = (_tile_monomials(u, v) @ poly).reshape(-1, 2)
+    coef = (_tile_monomials(*_tile_local((fx, fy), tile, tile_deg)) @ poly).reshape(-1, 2)
     transmitted = always.copy()
     todo = np.flatnonzero(~always & ~never)
     if todo.size:
@@ -674,6 +664,40 @@ _design_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
 design_tile_builds = 0
 
 
+def _tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
+    """Index of the ``tile_deg`` field tile holding ``field_deg``."""
+    return (int(np.floor(field_deg[0] / tile_deg)), int(np.floor(field_deg[1] / tile_deg)))
+
+
+def _tile_local(field_deg: tuple[float, float], tile: tuple[int, int],
+                tile_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates of a field in its tile, -1..1 across the tile."""
+    half = 0.5 * tile_deg
+    return (np.array((field_deg[0] - (tile[0] + 0.5) * tile_deg) / half),
+            np.array((field_deg[1] - (tile[1] + 0.5) * tile_deg) / half))
+
+
+def _tile_nodes(tile: tuple[int, int], tile_deg: float, n: int
+                ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float]]]:
+    """The n x n node grid of a tile: local (u, v) and the node fields [deg]."""
+    t = np.linspace(-1.0, 1.0, n)
+    u, v = (a.ravel() for a in np.meshgrid(t, t))
+    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
+    half = 0.5 * tile_deg
+    return u, v, [(float(cx + half * a), float(cy + half * b))
+                  for a, b in zip(u, v, strict=True)]
+
+
+def _tile_wanted(requests: dict[tuple, set[tuple[float, float]]], key: tuple,
+                 field: tuple[float, float]) -> bool:
+    """Whether a tile should serve ``field``: not for the tile's first
+    ``_DESIGN_TILE_AFTER - 1`` distinct fields, which keep the direct value."""
+    seen = requests.setdefault(key, set())
+    if field not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
+        seen.add(field)
+    return field not in seen
+
+
 def _tile_monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([u**a * v**(d - a) for d in range(_DESIGN_TILE_DEGREE + 1)
                      for a in range(d + 1)], axis=-1)
@@ -685,13 +709,9 @@ def _design_tile(inst: Instrument, band: str, wavelength_nm: float, tile: tuple[
     """Polynomial coefficients (n_mono, jmax) of one tile's design Zernikes, or None."""
     global design_tile_builds
     design_tile_builds += 1
-    t = np.linspace(-1.0, 1.0, _DESIGN_TILE_NODES)
-    u, v = (a.ravel() for a in np.meshgrid(t, t))
-    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
-    half = 0.5 * tile_deg
-    z = np.array([design_zernikes_nm(inst, band, wavelength_nm,
-                                     (float(cx + half * a), float(cy + half * b)), jmax)
-                  for a, b in zip(u, v, strict=True)])
+    u, v, nodes = _tile_nodes(tile, tile_deg, _DESIGN_TILE_NODES)
+    z = np.array([design_zernikes_nm(inst, band, wavelength_nm, node, jmax)
+                  for node in nodes])
     mono = _tile_monomials(u, v)
     coef, *_ = np.linalg.lstsq(mono, z, rcond=None)
     if np.abs(mono @ coef - z).max() > _DESIGN_TILE_MAX_RESID_NM:
@@ -707,19 +727,13 @@ def design_zernikes_tiled(inst: Instrument, band: str, wavelength_nm: float,
     if inst.mapping != "batoid" or tile_deg <= 0:
         return design_zernikes_nm(inst, band, wavelength_nm, field_deg, jmax)
     fx, fy = float(field_deg[0]), float(field_deg[1])
-    tile = (int(np.floor(fx / tile_deg)), int(np.floor(fy / tile_deg)))
+    tile = _tile_of((fx, fy), tile_deg)
     key = (inst, band, float(wavelength_nm), tile, float(tile_deg), int(jmax))
-    seen = _design_tile_requests.setdefault(key, set())
-    if (fx, fy) not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
-        seen.add((fx, fy))
-    if (fx, fy) in seen:  # one of the tile's first fields (always the direct value)
+    if not _tile_wanted(_design_tile_requests, key, (fx, fy)):
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
     coef = _design_tile(*key)
     if coef is None:
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
-    half = 0.5 * tile_deg
-    u = np.array((fx - (tile[0] + 0.5) * tile_deg) / half)
-    v = np.array((fy - (tile[1] + 0.5) * tile_deg) / half)
-    out = _tile_monomials(u, v) @ coef
+    out = _tile_monomials(*_tile_local((fx, fy), tile, tile_deg)) @ coef
     out.setflags(write=False)
     return out
