@@ -98,17 +98,6 @@ SIM_TRUTH_TOPIC = "/aos/sim/truth"
 
 
 # ----------------------------------------------------------------------------- parameters
-def _flatten(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in params.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, name + "."))
-        else:
-            out[name] = v
-    return out
-
-
 def node_parameters(node: str, params_files: Sequence[str | Path] = (), *,
                     defaults: dict[str, Any] | None = None) -> dict[str, Any]:
     """A node's parameter values: ``defaults``, config/params.yaml, then each file in order.
@@ -118,27 +107,20 @@ def node_parameters(node: str, params_files: Sequence[str | Path] = (), *,
     names (``sensors.R00.intra.rot90``), later sections and files overriding earlier ones.
     Raises ConfigError for an unreadable file.
     """
-    import yaml
-
     from .core.errors import ConfigError
     from .launch import default_params_file
+    from .params import ParamsFileError, read_params_file
 
     files = [default_params_file(), *map(Path, params_files)]
     out = dict(defaults or {})
     for f in files:
         try:
-            data = yaml.safe_load(Path(f).read_text(encoding="utf-8")) or {}
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise ConfigError(f"cannot read parameter file {f}: {exc}") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"parameter file {f} must map node names to ros__parameters")
-        for key, section in data.items():
-            if str(key).lstrip("/") not in (node, "**"):
-                continue
-            params = section.get("ros__parameters", {}) if isinstance(section, dict) else None
-            if not isinstance(params, dict):
-                raise ConfigError(f"parameter file {f}: {key} has no ros__parameters mapping")
-            out.update(_flatten(params))
+            sections = read_params_file(f)  # the launcher's reader: same rules, same errors
+        except ParamsFileError as exc:
+            raise ConfigError(str(exc)) from None
+        for key, params in sections.items():
+            if key.lstrip("/") in (node, "**"):
+                out.update(params)
     return out
 
 
