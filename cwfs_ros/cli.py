@@ -258,6 +258,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .demo import LoopConfig, LoopError, run_closed_loop, write_report
+    from .launch import sim_params_file
     from .sim.perturbation import random_perturbation
 
     if not args.wavefront_error > 0:
@@ -275,12 +276,10 @@ def _run_demo(args: argparse.Namespace) -> int:
           f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
           f"{args.photons:g} photons per donut"
           + ("" if args.visible else "; DDS discovery off (this process only)"), flush=True)
-    from .paths import config_dir
-
     config = LoopConfig(
         visits=args.visits, initial_dof=dof, n_photons=args.photons,
         render_seed=args.render_seed,
-        params_files=[config_dir() / "sim.yaml", *args.params], visible=args.visible,
+        params_files=[sim_params_file(), *args.params], visible=args.visible,
         domain_id=args.domain_id,
         ros_args=() if args.verbose else ("--log-level", "warn"))
     header = (f"{'visit':>5}  {'true WFE':>9}  {'measured':>9}  {'est. err':>8}  "

@@ -39,7 +39,6 @@ import numpy as np
 import yaml
 
 from .core.visits import CORNERS, N_ZK, SIDES
-from .paths import config_dir
 from .sim.perturbation import rigid_perturbation, wavefront_error_nm
 
 __all__ = [
@@ -185,10 +184,6 @@ class LoopError(RuntimeError):
     """The loop could not run (a node failed to start, a visit timed out); says which."""
 
 
-def _default_params_files() -> list[Path]:
-    return [config_dir() / "sim.yaml"]
-
-
 def _overlay(config: LoopConfig) -> dict[str, Any]:
     """The run's own parameters (written next to the report, so the run can be repeated)."""
     dof = np.asarray(config.initial_dof, dtype=np.float64).reshape(-1)
@@ -227,7 +222,9 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     workdir.mkdir(parents=True, exist_ok=True)
     overlay_path = workdir / "params_overlay.yaml"
     overlay_path.write_text(yaml.safe_dump(_overlay(config), sort_keys=False))
-    files = [*(_default_params_files() if config.params_files is None
+    from .launch import run_nodes, sim_params_file
+
+    files = [*([sim_params_file()] if config.params_files is None
                else [Path(f) for f in config.params_files]), overlay_path]
 
     # rcl reads the discovery range when the context is initialised (in run_nodes, below);
@@ -240,8 +237,6 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
         domain = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
 
     import rclpy
-
-    from .launch import run_nodes
 
     ctx = rclpy.Context()
     started: dict[str, Any] = {}
