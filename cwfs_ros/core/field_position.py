@@ -95,6 +95,20 @@ def load_half_chips(path: str | Path | None = None) -> dict[str, dict[str, HalfC
     """
     p = Path(path) if path is not None else config_dir() / "sensors" / "lsst_corners.yaml"
     try:
+        mtime = p.stat().st_mtime_ns
+    except OSError as exc:
+        raise ConfigError(f"cannot read sensor file {p}: {exc}") from exc
+    # Parsing the YAML costs ~12 ms, a tenth of a corner's budget: every visit's corner job
+    # reads it, so the parsed file is kept per (path, modification time).  The caller gets
+    # its own outer dicts; HalfChip is frozen.
+    parsed = _parse_half_chips(str(p.resolve()), mtime)
+    return {corner: dict(halves) for corner, halves in parsed.items()}
+
+
+@lru_cache(maxsize=8)
+def _parse_half_chips(path: str, mtime_ns: int) -> dict[str, dict[str, HalfChip]]:
+    p = Path(path)
+    try:
         cfg = yaml.safe_load(p.read_text())
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read sensor file {p}: {exc}") from exc

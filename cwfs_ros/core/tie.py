@@ -183,6 +183,27 @@ class IterativeFFT:
         return (self._matrix @ d_intensity.astype(self._dtype)).astype(float) / -kappa
 
 
+def _region_neighbours(shape: tuple[int, int], region: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Positions in ``region`` of each region point's left, right, upper, lower neighbour.
+
+    ``region.size`` where the neighbour is off the region (or off the grid).
+    """
+    nr, nc = shape
+    m = region.size
+    lut = np.full(nr * nc, m, dtype=np.intp)
+    lut[region] = np.arange(m)
+    rows, cols = np.divmod(region, nc)
+    out = []
+    for dr, dc in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+        r2, c2 = rows + dr, cols + dc
+        ok = (r2 >= 0) & (r2 < nr) & (c2 >= 0) & (c2 < nc)
+        idx = np.full(m, m, dtype=np.intp)
+        idx[ok] = lut[r2[ok] * nc + c2[ok]]
+        out.append(idx)
+    return out[0], out[1], out[2], out[3]
+
+
 class LeastSquares:
     """Least-squares TIE solver on the annular Zernike basis (beyond the paper).
 
@@ -216,26 +237,29 @@ class LeastSquares:
         zx, zy = basis.dx[1:].astype(float), basis.dy[1:].astype(float)
         if mappings is None:
             # Isotropic response (paraxial): B_j = div(I grad Z_j).
-            ux, uy = zx, zy
+            ux, uy = i0 * zx, i0 * zy
         else:
             # Each image's samples move in the pupil by v = C A^-1 grad Z when the wavefront
             # changes (A: that image's mapping Jacobian, anisotropic off axis); the
-            # difference image then changes by div(I (v_intra - v_extra)).
-            ux = np.zeros_like(zx)
-            uy = np.zeros_like(zy)
+            # difference image then changes by div(I (v_intra - v_extra)).  The per-point
+            # factors of grad Z are summed over both images first (one pass over the
+            # (jmax, n) arrays instead of four).
+            axx, axy, ayx, ayy = (np.zeros(region.size) for _ in range(4))
             for m, sign in zip(mappings, (1.0, -1.0), strict=True):
-                det = m.det.astype(float)
-                c = m.c_px_per_nm * sign / kappa
-                ux += c * (m.jyy * zx - m.jxy * zy) / det
-                uy += c * (-m.jyx * zx + m.jxx * zy) / det
-        fx = np.zeros((self.jmax - 1, n))
-        fy = np.zeros((self.jmax - 1, n))
-        fx[:, region] = i0 * ux
-        fy[:, region] = i0 * uy
-        fx = fx.reshape(-1, *shape)
-        fy = fy.reshape(-1, *shape)
-        div = np.gradient(fx, spacing, axis=2) + np.gradient(fy, spacing, axis=1)
-        b = div.reshape(self.jmax - 1, n)[:, region]
+                c = (m.c_px_per_nm * sign / kappa) / m.det.astype(float)
+                axx += c * m.jyy
+                axy -= c * m.jxy
+                ayx -= c * m.jyx
+                ayy += c * m.jxx
+            ux = (i0 * axx) * zx + (i0 * axy) * zy
+            uy = (i0 * ayx) * zx + (i0 * ayy) * zy
+        # div(I u) at the region points by central differences (np.gradient's interior
+        # rule); I u is zero off the region, so neighbours are gathered on the region
+        # itself, with one appended zero column standing for every point off it.
+        ux = np.concatenate([ux, np.zeros((self.jmax - 1, 1))], axis=1)
+        uy = np.concatenate([uy, np.zeros((self.jmax - 1, 1))], axis=1)
+        left, right, up, down = _region_neighbours(shape, region)
+        b = ((ux[:, right] - ux[:, left]) + (uy[:, down] - uy[:, up])) / (2.0 * spacing)
         # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix.
         self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
         self._matrix[1:] = -np.linalg.solve(b @ b.T, b)

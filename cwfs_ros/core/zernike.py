@@ -117,7 +117,9 @@ class ZernikeBasis:
         return _derivative_operators(_order(self.jmax))
 
     def _term_derivative(self, k: int) -> np.ndarray:
-        return (self.coeffs_xy @ self._ops[k]) @ self.monomials
+        # In the basis dtype, as z: the small factor is cast, never the big monomial array
+        # (a float64 product would upcast it and double the arrays every solver set-up reads).
+        return (self.coeffs_xy @ self._ops[k]).astype(self.monomials.dtype) @ self.monomials
 
     # Per-term derivative arrays (jmax, npoints), built on first use (solver set-up, tests).
     @cached_property
@@ -139,6 +141,19 @@ class ZernikeBasis:
     @cached_property
     def dyy(self) -> np.ndarray:
         return self._term_derivative(4)
+
+    def subset(self, index: np.ndarray) -> ZernikeBasis:
+        """The basis at ``points[index]``, sharing this basis' polynomial coefficients.
+
+        Derivative arrays already built here are indexed, not rebuilt: a basis built once
+        on a fixed pupil grid then serves every field's computation region on it.
+        """
+        sub = ZernikeBasis(self.jmax, self.eps, np.ascontiguousarray(self.monomials[:, index]),
+                           self.coeffs_xy, np.ascontiguousarray(self.z[:, index]))
+        for name in ("dx", "dy", "dxx", "dxy", "dyy"):
+            if name in self.__dict__:  # a cached_property that has been evaluated
+                sub.__dict__[name] = np.ascontiguousarray(self.__dict__[name][:, index])
+        return sub
 
     def wavefront(self, coeffs: np.ndarray) -> np.ndarray:
         """W at the points for Noll coefficients ``coeffs`` (Z1.., at most jmax long)."""
