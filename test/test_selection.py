@@ -273,3 +273,15 @@ def test_frame_job_never_raises():
     flat = np.random.default_rng(0).poisson(30.0, (400, 400)).astype(float)
     res = run_corner_frame_job(CornerFrameJob("R00", 5, flat, flat))
     assert not res.valid and res.reason == "no_donuts"
+
+
+def test_swap_check_confirms_the_frames_once_and_refuses_exchanged_frames(intra_frame,
+                                                                           extra_frame):
+    """Which half is intra-focal belongs to the frames: the first pair's check confirms it
+    and later pairs skip it; frames given the wrong way round fail in every pair."""
+    kw = dict(corner="R00", settings=EstimatorSettings(solver="lsq"), config=_config())
+    res = estimate_corner_frames(intra_frame.image, extra_frame.image, **kw)
+    assert [p.swap_check for p in res.pairs] == ["confirmed", "skipped"]
+    bad = estimate_corner_frames(extra_frame.image, intra_frame.image, **kw)
+    assert not bad.valid and bad.reason == "no_valid_pair"
+    assert len(bad.pairs) == 2 and all(p.status == "swapped" for p in bad.pairs)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, fields
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -192,7 +192,9 @@ class PairGeometry:
         jac_mean_intra, jac_mean_extra: mean mapping Jacobian (px per pupil unit), which
             turns a pupil shift into the image shift that undoes it.
         footprints: predicted image-plane footprints of both images for the swapped-pair
-            check (:func:`.checks.pair_footprints`).
+            check (:func:`.checks.pair_footprints`), built on first use (~3 ms): a corner
+            whose frames are confirmed the right way round skips the check for its further
+            pairs (:func:`cwfs_ros.core.selection.estimate_pairs`).
     """
 
     shape: tuple[int, int]
@@ -223,7 +225,11 @@ class PairGeometry:
     rim_pinv: np.ndarray | None = None
     jac_mean_intra: np.ndarray | None = None
     jac_mean_extra: np.ndarray | None = None
-    footprints: PairFootprints | None = None
+    footprint_inputs: tuple | None = field(default=None, repr=False)
+
+    @cached_property
+    def footprints(self) -> PairFootprints | None:
+        return None if self.footprint_inputs is None else _footprints(*self.footprint_inputs)
 
     def pupil_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
         """Scatter values on the computation points into an (n, n) image for display."""
@@ -406,7 +412,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
                                m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
                       for m in (m_in, m_ex)))
-    footprints = _footprints(full_in, full_ex, grid_in, grid_ex, cand, n, outer)
+    footprints = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
     zc = basis.z[:, common].astype(float)
     gram = zc @ zc.T / max(int(common.sum()), 1)
     feedback_l = np.linalg.cholesky(gram) if algo.feedback_basis == "orthonormal" else None
@@ -460,6 +466,10 @@ class WavefrontResult:
         masks: pupil masks used (2-D images on the pupil grid): intra, extra, common, region.
         compensated: final compensated intra and extra images on the pupil grid.
         inputs: preprocessing measurements of each donut.
+        swap_check: outcome of the swapped-pair check: ``"confirmed"`` (the images are the
+            right way round beyond doubt: preference above ``swap_threshold`` at
+            ``swap_min_significance``), ``"inconclusive"`` (it ran and could not tell) or
+            ``"off"`` (disabled, or no vignetting to tell by).  An exchanged pair raises.
     """
 
     zernikes_nm: np.ndarray
@@ -481,6 +491,7 @@ class WavefrontResult:
     compensated: dict[str, np.ndarray] = field(repr=False)
     inputs: dict[str, PreparedDonut] = field(repr=False)
     noll: np.ndarray = field(default_factory=lambda: NOLL_REPORTED.copy())
+    swap_check: str = "off"
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly summary."""
@@ -581,9 +592,11 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
                            margin_px=margin, saturation_level=sat, checks=checks)
     # Off axis the vignetting tells which image is which: an exchanged pair gives a wrong
     # wavefront with no other sign of trouble (see cwfs_ros.core.checks).
-    if geom.footprints is not None:
-        check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy, don_ex.centroid_xy,
-                          (don_in.noise, don_ex.noise), geom.footprints, checks)
+    swap = None
+    if checks.swap_check and geom.footprints is not None:
+        swap = check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy,
+                                 don_ex.centroid_xy, (don_in.noise, don_ex.noise),
+                                 geom.footprints, checks)
     # Align each image so that its centroid falls where the mapping, with the current
     # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
     # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any
@@ -687,4 +700,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         masks=masks,
         compensated=comp,
         inputs={"intra": don_in, "extra": don_ex},
+        swap_check=("off" if swap is None else
+                    "confirmed" if (swap.preference[1] > checks.swap_threshold
+                                    and swap.significance[1] > checks.swap_min_significance)
+                    else "inconclusive"),
     )

@@ -242,6 +242,9 @@ class PairResult:
         used: contributed to the combination (False if failed, caustic or an outlier).
         iterations: outer iterations run; ``compute_ms`` wall time of the estimate
             (including a geometry build for a new pair of fields).
+        swap_check: the estimator's swapped-pair outcome (``"confirmed"``,
+            ``"inconclusive"``, ``"off"``), ``"skipped"`` when an earlier pair had confirmed
+            the frames, ``""`` when the estimate failed (a swapped pair fails as such).
     """
 
     index: int
@@ -260,6 +263,7 @@ class PairResult:
     used: bool = False
     iterations: int = 0
     compute_ms: float = 0.0
+    swap_check: str = ""
 
     @property
     def departure_nm(self) -> np.ndarray:
@@ -269,11 +273,20 @@ class PairResult:
 
 def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
                    settings: EstimatorSettings = _DEFAULT_SETTINGS) -> list[PairResult]:
-    """Estimate every pair with each star's own field; never raises for a bad pair."""
+    """Estimate every pair with each star's own field; never raises for a bad pair.
+
+    Which half is intra-focal is a property of the two frames, not of a star pair: once one
+    pair's swapped-pair check (:func:`.checks.check_not_swapped`) has found the images the
+    right way round beyond doubt, the corner's further pairs skip it (and the footprints it
+    needs, ~4 ms a pair).  Until then every pair is checked, so exchanged frames are refused
+    pair by pair, and an inconclusive pair confirms nothing.
+    """
     from .estimator import estimate_wavefront
 
     out = []
     nan = np.full(len(_NOLL), np.nan)
+    kwargs = settings.estimator_kwargs()
+    confirmed = False
     for k, (si, se) in enumerate(pairs):
         t0 = time.perf_counter()
         mid = (0.5 * (si.field_deg[0] + se.field_deg[0]),
@@ -285,7 +298,7 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
                       noise_scale=pair_noise_scale(si.donut.snr, se.donut.snr))
         try:
             r = estimate_wavefront(si.stamp, se.stamp, field_intra_deg=si.field_deg,
-                                   field_extra_deg=se.field_deg, **settings.estimator_kwargs())
+                                   field_extra_deg=se.field_deg, **kwargs)
         except CwfsError as exc:
             tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
                                                      else "bad_image"))
@@ -294,6 +307,10 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
                                   compute_ms=(time.perf_counter() - t0) * 1e3))
             continue
         ms = (time.perf_counter() - t0) * 1e3
+        common["swap_check"] = "skipped" if confirmed else r.swap_check
+        if r.swap_check == "confirmed":
+            confirmed = True
+            kwargs = {**kwargs, "swap_check": False}
         z = np.asarray(r.zernikes_nm, dtype=np.float64)
         if r.caustic or r.iterations < 1:
             # The compensation folded (§2.1): the estimator keeps its last good iterate, but
