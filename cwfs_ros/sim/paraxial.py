@@ -27,7 +27,8 @@ __all__ = ["render_paraxial_pair"]
 def render_paraxial_pair(inst: Instrument, zernikes_nm: dict[int, float] | np.ndarray, *,
                          defocus_mm: float | None = None, npix: int = 120,
                          n_photons: float = 1e6, rng: np.random.Generator | None = None,
-                         poisson: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                         poisson: bool = True, sampling: str = "random"
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Render (intra, extra) donuts ``[row=y, col=x]`` of a paraxial lens with wavefront W.
 
     Args:
@@ -39,6 +40,9 @@ def render_paraxial_pair(inst: Instrument, zernikes_nm: dict[int, float] | np.nd
         n_photons: photons per image (each photon is one ray).
         rng: random generator.
         poisson: draw the number of photons from a Poisson distribution.
+        sampling: ``"random"`` pupil points (photon shot noise), or ``"quasi"``: a
+            scrambled Sobol sequence, with ``poisson=False`` an (almost) noise-free image
+            (see :func:`cwfs_ros.sim.render.trace_pupil_rays`).
     """
     rng = np.random.default_rng() if rng is None else rng
     if isinstance(zernikes_nm, dict):
@@ -54,8 +58,17 @@ def render_paraxial_pair(inst: Instrument, zernikes_nm: dict[int, float] | np.nd
     out = []
     for sign, dist in ((1.0, f - l_m), (-1.0, f + l_m)):
         n = rng.poisson(n_photons) if poisson else int(n_photons)
-        r = np.sqrt(rng.uniform(inst.obscuration**2, 1.0, n))
-        t = rng.uniform(0.0, 2 * np.pi, n)
+        if sampling == "quasi":
+            from scipy.stats import qmc
+
+            u = qmc.Sobol(d=2, scramble=True, seed=rng).random(n)
+            r = np.sqrt(inst.obscuration**2 + (1.0 - inst.obscuration**2) * u[:, 0])
+            t = 2 * np.pi * u[:, 1]
+        elif sampling == "random":
+            r = np.sqrt(rng.uniform(inst.obscuration**2, 1.0, n))
+            t = rng.uniform(0.0, 2 * np.pi, n)
+        else:
+            raise ValueError(f"sampling must be 'random' or 'quasi', got {sampling!r}")
         x, y = r * np.cos(t), r * np.sin(t)
         xs = sign * l_m * big_r / f * x - dist * gx(x, y) / big_r
         ys = sign * l_m * big_r / f * y - dist * gy(x, y) / big_r

@@ -150,7 +150,7 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
         est = []
         for c in corners.values():
             intra, extra = _lsst_pair(tel, c.intra_field_deg, c.extra_field_deg, SPLIT, wl,
-                                      opts.photons, rng)
+                                      opts.solver_photons, rng)
             r = _estimate(intra, extra, c.intra_field_deg, c.extra_field_deg, band="r",
                           wavelength_nm=wl, defocal_offset_mm=SPLIT.defocus_mm)
             est.append(r.zernikes_nm)

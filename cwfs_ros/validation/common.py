@@ -123,9 +123,14 @@ Deflection = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np
 
 def trace_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm: float, *,
                     wavelength_nm: float, n_rays: int, rng: np.random.Generator,
-                    gradient: Deflection | None = None, exposure_s: float = 15.0
+                    gradient: Deflection | None = None, exposure_s: float = 15.0,
+                    sampling: str = "random"
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
     """Trace rays with directions tilted by ``-grad W`` at the stop (see render_deflected).
+
+    ``sampling``: ``"random"`` pupil points and arrival times, or ``"quasi"``, a scrambled
+    3-D Sobol sequence over (pupil area, azimuth, time), whose integration error falls
+    almost as 1 / n_rays: the noise-free time-integrated image.
 
     Returns detector x, y (m), the transmitted mask, and the undeflected chief ray (x, y).
     """
@@ -137,9 +142,22 @@ def trace_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm
     wl = wavelength_nm * 1e-9
     thx, thy = (float(np.deg2rad(a)) for a in field_deg)
     eps = float(optic.pupilObscuration)
-    r = R_PUPIL_M * np.sqrt(rng.uniform(eps * eps, 1.0, n_rays))
-    phi = rng.uniform(0.0, 2 * np.pi, n_rays)
-    t = rng.uniform(0.0, exposure_s, n_rays)
+    if sampling == "quasi":
+        from scipy.stats import qmc
+
+        u = qmc.Sobol(d=3, scramble=True, seed=rng).random(n_rays)
+    elif sampling == "random":
+        u = None
+    else:
+        raise ValueError(f"sampling must be 'random' or 'quasi', got {sampling!r}")
+    if u is None:
+        r = R_PUPIL_M * np.sqrt(rng.uniform(eps * eps, 1.0, n_rays))
+        phi = rng.uniform(0.0, 2 * np.pi, n_rays)
+        t = rng.uniform(0.0, exposure_s, n_rays)
+    else:
+        r = R_PUPIL_M * np.sqrt(eps * eps + (1.0 - eps * eps) * u[:, 0])
+        phi = 2 * np.pi * u[:, 1]
+        t = exposure_s * u[:, 2]
     px, py = r * np.cos(phi), r * np.sin(phi)
     rv = batoid.RayVector.fromStop(px, py, optic, wavelength=wl, theta_x=thx, theta_y=thy)
     if gradient is not None:
@@ -159,7 +177,7 @@ def trace_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm
 def render_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm: float, *,
                      wavelength_nm: float, npix: int, n_photons: int,
                      rng: np.random.Generator, gradient: Deflection | None = None,
-                     exposure_s: float = 15.0) -> np.ndarray:
+                     exposure_s: float = 15.0, noise_free: bool = False) -> np.ndarray:
     """Ray-trace a donut whose rays are deflected by a pupil-plane OPD gradient (Fig. 10).
 
     Each photon gets a uniform pupil point on the annulus and a uniform arrival time in the
@@ -173,12 +191,15 @@ def render_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_m
     scintillation).
 
     The stamp is centred on the undeflected chief ray, ``[row=y, col=x]`` like
-    :func:`cwfs_ros.sim.render.render_donut`; each ray is one photon (Poisson statistics).
+    :func:`cwfs_ros.sim.render.render_donut`; each ray is one photon (Poisson statistics),
+    or, with ``noise_free``, ``n_photons`` quasi-random rays (the paper's noise-free ZEMAX
+    images: what is left of the estimate's error is the algorithm's own).
     """
+    n_rays = int(n_photons) if noise_free else int(rng.poisson(n_photons))
     x, y, ok, (cx, cy) = trace_deflected(tel, field_deg, detector_offset_mm,
-                                         wavelength_nm=wavelength_nm,
-                                         n_rays=int(rng.poisson(n_photons)), rng=rng,
-                                         gradient=gradient, exposure_s=exposure_s)
+                                         wavelength_nm=wavelength_nm, n_rays=n_rays, rng=rng,
+                                         gradient=gradient, exposure_s=exposure_s,
+                                         sampling="quasi" if noise_free else "random")
     pix = 10e-6
     col = (x[ok] - cx) / pix + npix / 2.0
     row = (y[ok] - cy) / pix + npix / 2.0

@@ -25,11 +25,16 @@ class Options:
 
     quick: bool
     seed: int = 2015
-    photons: float = 1e6               # per donut, convergence and perturbed-telescope pairs
-    linearity_photons: float = 5e5
+    # Figs. 5-7 and 9 reproduce the paper's noise-free test images (ZEMAX, no photon
+    # noise): rays on a scrambled Sobol sequence, no Poisson draw.  With 2^21 rays a
+    # pixel's relative error is ~1.2 %, that of ~6e7 photons (measured against a second
+    # scramble); the estimate's photon noise is the noise-floor section's subject.
+    rays: int = 2**21                  # per donut, convergence and perturbed-telescope pairs
+    linearity_rays: int = 2**20
+    solver_photons: float = 1e6        # the solver section's estimated pairs: Poisson noise
     linearity_step_deg: float = 0.01   # M2 rx step
-    atm_realisations: int = 6
-    atm_photons: int = 200_000
+    atm_realisations: int = 12
+    atm_rays: int = 2**19              # noise-free (quasi-random) rays per donut, as ZEMAX's
     atm_screen_scale_m: float = 0.4
     atm_screen_size_m: float = 204.8
     atm_times: int = 100               # time samples of the ideal sensor's 15-s average
@@ -42,8 +47,8 @@ class Options:
     def make(cls, quick: bool, seed: int = 2015) -> Options:
         if quick:
             return cls(quick=True, seed=seed)
-        return cls(quick=False, seed=seed, photons=4e6, linearity_photons=2e6,
-                   linearity_step_deg=0.005, atm_realisations=60, atm_photons=1_000_000,
+        return cls(quick=False, seed=seed, rays=2**22, linearity_rays=2**21,
+                   linearity_step_deg=0.005, atm_realisations=60, atm_rays=2**20,
                    atm_screen_scale_m=0.2, atm_screen_size_m=409.6, atm_times=300,
                    noise_levels=(1e3, 2e3, 5e3, 1e4, 2e4, 5e4, 1e5, 2e5, 5e5, 1e6, 3e6, 1e7),
                    noise_seeds=12)
@@ -92,11 +97,16 @@ def _estimate(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple, **kw: 
 
 
 def _lsst_pair(tel: Any, fi: tuple, fe: tuple, setup: SensorSetup, wl: float,
-               photons: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+               photons: float | None, rng: np.random.Generator, rays: int = 2**21
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-traced (intra, extra) donuts: ``photons`` with Poisson noise, or, for None, the
+    noise-free image of ``rays`` quasi-random rays (scaled to 1e6 photons)."""
     from ..sim.render import render_donut
 
+    kw: dict[str, Any] = (dict(n_photons=photons) if photons is not None else
+                          dict(n_photons=1e6, n_rays=rays, poisson=False, sampling="quasi"))
     return tuple(render_donut(tel, f, s * setup.defocus_mm, wavelength_nm=wl, npix=setup.npix,
-                              n_photons=photons, rng=rng)
+                              rng=rng, **kw)
                  for f, s in ((fi, -1.0), (fe, 1.0)))  # type: ignore[return-value]
 
 
@@ -142,8 +152,8 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
     # Paraxial Z4: 1 wave at 770 nm, the scale of the paper's LSST tests.
     inst = load_instrument("paraxial")
     amp = 770.0
-    intra, extra = render_paraxial_pair(inst, {4: amp}, npix=120, n_photons=opts.photons,
-                                        rng=rng)
+    intra, extra = render_paraxial_pair(inst, {4: amp}, npix=120, n_photons=opts.rays,
+                                        rng=rng, poisson=False, sampling="quasi")
     r = _estimate(intra, extra, (0.0, 0.0), (0.0, 0.0), instrument=inst)
     truth = np.zeros(19)
     truth[0] = amp
@@ -162,7 +172,7 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
             fi, fe, mid = setup.fields(corner, field)
             tel, delta = inject_m1(tel0, noll, amp, mid, wl)
             nominal = true_zernikes_nm(tel0, mid, wavelength_nm=wl, eps=EPS)
-            intra, extra = _lsst_pair(tel, fi, fe, setup, wl, opts.photons, rng)
+            intra, extra = _lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
             r = _estimate(intra, extra, fi, fe, band="i", wavelength_nm=wl,
                           defocal_offset_mm=setup.defocus_mm)
             dep = r.zernikes_nm - nominal  # the departure from design, as injected
@@ -203,7 +213,7 @@ def fig7_perturbed(opts: Options) -> tuple[list[Verdict], dict]:
     verdicts, panels = [], []
     for setup in (PAPER, SPLIT):
         fi, fe, mid = setup.fields("R04", (-1.185, 1.185))
-        intra, extra = _lsst_pair(tel, fi, fe, setup, wl, opts.photons, rng)
+        intra, extra = _lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
         r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
                       defocal_offset_mm=setup.defocus_mm)
         truth = true_zernikes_nm(tel, mid, wavelength_nm=wl, eps=EPS)
@@ -254,15 +264,21 @@ def fig9_linearity(opts: Options) -> tuple[list[Verdict], dict]:
             # A large stamp: the tilted M2 throws the donut off its chief ray by coma.
             intra, extra = _lsst_pair(tel, fi, fe, SensorSetup(setup.name, setup.defocus_mm,
                                                                256),
-                                      wl, opts.linearity_photons, rng)
+                                      wl, None, rng, opts.linearity_rays)
             try:
                 r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
                               defocal_offset_mm=setup.defocus_mm)
                 est, caustic, status = float(r.zernikes_nm[1]), bool(r.caustic), "ok"
+                # The outer loop's last update: a few nm while linear; it stays large where
+                # the loop has no consistent fixed point (the breakdown, flagged or not).
+                last = float(r.residual_rms_nm[-1])
+                err_rms = rms(r.zernikes_nm - truth)
             except Exception as exc:  # noqa: BLE001 - an image past the limit may be refused
                 est, caustic, status = float("nan"), False, type(exc).__name__
+                last = err_rms = float("nan")
             rows.append(dict(rx=float(rx), true=float(truth[1]), est=est, fold=fold,
-                             caustic=caustic, status=status))
+                             caustic=caustic, status=status, last_update_nm=last,
+                             rms_error_nm=err_rms))
         folded = [i for i, rw in enumerate(rows) if rw["fold"] > 0]
         limit = folded[0] if folded else len(rows)
         lin = [rw for rw in rows[:limit] if np.isfinite(rw["est"])]
@@ -286,6 +302,10 @@ def fig9_linearity(opts: Options) -> tuple[list[Verdict], dict]:
                  f"(50 nm) up to rx {rows[breaks - 1]['rx'] if breaks else 0:g} deg "
                  f"(Z5 {rows[breaks - 1]['true'] if breaks else 0:.0f} nm); ")
         first_caustic = next((rw["rx"] for rw in rows if rw["caustic"]), None)
+        if breaks < len(rows):
+            b = rows[breaks]
+            value += (f"linearity breaks down at rx {b['rx']:g} deg (Z5 {b['true']:.0f} nm, "
+                      f"recovered {b['est']:.0f}): caustic flag {b['caustic']} there; ")
         if at_limit is not None:
             value += (f"geometric limit (ray fold) at rx {at_limit['rx']:g} deg, Z5 "
                       f"{at_limit['true']:.0f} nm: caustic flag {at_limit['caustic']} there "
@@ -371,12 +391,17 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
     """Atmosphere against algorithm noise: covariance of the 76 coefficients (Fig. 10).
 
     For each realisation of a 15-s time-integrated atmosphere, intra and extra donuts are
-    ray-traced at the four corners through the nominal r-band telescope with every photon
+    ray-traced at the four corners through the nominal r-band telescope with every ray
     deflected by the screens' gradient at its own pupil point and arrival time
-    (:func:`.common.render_deflected`), and estimated; the ideal sensor is the atmosphere's
-    own Zernikes of the exposure-averaged OPD at the estimate's field.  Compared: the
-    covariances' largest singular values, and the covariance of (estimate - ideal), the
-    algorithm's own noise.
+    (:func:`.common.render_deflected`), noise-free like the paper's ZEMAX images
+    (quasi-random rays, no photon noise: the comparison is with the algorithm's own
+    noise), and estimated.  The ideal sensor is the atmosphere's own Zernikes of the
+    exposure-averaged OPD: at the pair's field for the paper's set-up; on the split sensor
+    the two images are two stars, ~0.065 deg apart, whose lines of sight through the high
+    layers differ, and a pair measures their mean (to first order the TIE signal is
+    ``laplacian(W_intra + W_extra) / 2``), so the ideal there is the mean of the two stars'
+    (the mid-field value is reported too).  Compared: the covariances' largest singular
+    values, and the covariance of (estimate - ideal), the algorithm's own noise.
     """
     from ..sim.render import load_corner_geometry
     from ..sim.telescope import load_lsst
@@ -388,18 +413,19 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
     verdicts, panels = [], []
     for setup in (PAPER, SPLIT):
         t0 = time.perf_counter()
-        est_rows, ideal_rows, fails = [], [], 0
+        est_rows, ideal_rows, mid_rows, fails = [], [], [], 0
         for k in range(opts.atm_realisations):
             rng = np.random.default_rng(opts.seed * 1000 + k)
             atm = TimeIntegratedAtmosphere(opts.seed * 1000 + k, opts.atm_screen_size_m,
                                            opts.atm_screen_scale_m)
-            est, ideal = [], []
+            est, ideal, at_mid = [], [], []
             for name, c in corners.items():
                 paper_field = tuple(float(np.sign(v)) * 1.185 for v in c.mid_field_deg)
                 fi, fe, mid = setup.fields(name, paper_field)
                 intra, extra = (render_deflected(tel, f, s * setup.defocus_mm, wavelength_nm=wl,
-                                                 npix=setup.npix, n_photons=opts.atm_photons,
-                                                 rng=rng, gradient=atm.gradient(f))
+                                                 npix=setup.npix, n_photons=opts.atm_rays,
+                                                 rng=rng, gradient=atm.gradient(f),
+                                                 noise_free=True)
                                 for f, s in ((fi, -1.0), (fe, 1.0)))
                 try:
                     r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
@@ -407,11 +433,16 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
                     est.append(r.zernikes_nm)
                 except Exception:  # noqa: BLE001 - counted and reported
                     est.append(np.full(19, np.nan))
-                ideal.append(atm.ideal_zernikes_nm(mid, opts.atm_times))
+                z_mid = atm.ideal_zernikes_nm(mid, opts.atm_times)
+                at_mid.append(z_mid)
+                ideal.append(z_mid if fi == fe else
+                             0.5 * (atm.ideal_zernikes_nm(fi, opts.atm_times)
+                                    + atm.ideal_zernikes_nm(fe, opts.atm_times)))
             est_v, ideal_v = np.concatenate(est), np.concatenate(ideal)
             if np.all(np.isfinite(est_v)):
                 est_rows.append(est_v)
                 ideal_rows.append(ideal_v)
+                mid_rows.append(np.concatenate(at_mid))
             else:
                 fails += 1
         wall = time.perf_counter() - t0
@@ -423,11 +454,20 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
         top = max(1, min(3, n - 1))
         ratio = s_e[:top] / s_i[:top]
         noise_frac = float(np.sqrt(s_d[0] / s_i[0]))
+        # Against the mid-field ideal instead (the same for the paper's set-up).
+        m = np.array(mid_rows)
+        s_dm = np.linalg.svd(np.cov(e - m, rowvar=False), compute_uv=False)
+        noise_frac_mid = float(np.sqrt(s_dm[0] / np.linalg.svd(np.cov(m, rowvar=False),
+                                                               compute_uv=False)[0]))
         ok = bool(np.all(np.abs(ratio - 1.0) <= 0.2) and noise_frac <= 0.35)
+        ideal_is = "mean of the two stars'" if setup is SPLIT else "at the pair's field"
+        extra_txt = (f" (against the mid-field ideal: {100 * noise_frac_mid:.0f}%)"
+                     if setup is SPLIT else "")
         verdicts.append(Verdict(
             f"Fig. 10 atmosphere ({setup.name})", ok,
             f"top-{top} singular values sensor/ideal {', '.join(f'{x:.2f}' for x in ratio)}; "
-            f"algorithm noise sqrt(s1) {100 * noise_frac:.0f}% of the atmosphere's; "
+            f"algorithm noise sqrt(s1) {100 * noise_frac:.0f}% of the atmosphere's"
+            f"{extra_txt}; ideal sensor {ideal_is}; noise-free images; "
             f"{n} realisations ({fails} dropped), {wall:.0f} s",
             "largest singular values agree within 20%, algorithm-noise amplitude <= 35% of "
             "the atmosphere's",
@@ -436,7 +476,8 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
              "singular_difference": s_d[:10].tolist(),
              "atm_rms_per_corner_nm": float(np.sqrt(np.trace(cov_i) / 4)),
              "screen_scale_m": opts.atm_screen_scale_m,
-             "screen_size_m": opts.atm_screen_size_m, "photons": opts.atm_photons}))
+             "screen_size_m": opts.atm_screen_size_m, "rays": opts.atm_rays,
+             "noise_fraction": noise_frac, "noise_fraction_vs_mid_field": noise_frac_mid}))
         panels.append(dict(setup=setup, cov_e=cov_e, cov_i=cov_i, s_e=s_e, s_i=s_i, s_d=s_d,
                            n=n))
     return verdicts, {"panels": panels}
