@@ -285,3 +285,22 @@ def test_swap_check_confirms_the_frames_once_and_refuses_exchanged_frames(intra_
     bad = estimate_corner_frames(extra_frame.image, intra_frame.image, **kw)
     assert not bad.valid and bad.reason == "no_valid_pair"
     assert len(bad.pairs) == 2 and all(p.status == "swapped" for p in bad.pairs)
+
+
+def test_multi_pair_uncertainty_factor_scales_combinations_only():
+    from cwfs_ros.core.errors import ConfigError
+
+    rng = np.random.default_rng(3)
+    dep = rng.normal(0.0, 10.0, (3, 19))
+    q = np.array([0.004, 0.005, 0.006])
+    base = CombinationConfig(noise_coefficient_nm=2000.0, pair_floor_nm=5.0)
+    wide = base.with_overrides(multi_pair_scale=1.25)
+    many = combine_pairs(dep, q, config=base), combine_pairs(dep, q, config=wide)
+    np.testing.assert_allclose(many[1].uncertainty_nm, 1.25 * many[0].uncertainty_nm)
+    np.testing.assert_array_equal(many[1].zernikes_nm, many[0].zernikes_nm)
+    one = combine_pairs(dep[:1], q[:1], config=base), combine_pairs(dep[:1], q[:1], config=wide)
+    # One pair: the model's sigma = sqrt((c q)^2 + f^2), not rescaled.
+    np.testing.assert_allclose(one[1].uncertainty_nm, np.hypot(2000.0 * 0.004, 5.0))
+    np.testing.assert_array_equal(one[1].uncertainty_nm, one[0].uncertainty_nm)
+    with pytest.raises(ConfigError, match="multi_pair_scale"):
+        CombinationConfig(multi_pair_scale=0.1)
