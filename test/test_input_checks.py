@@ -253,3 +253,23 @@ def test_input_check_parameters_are_validated() -> None:
             _estimate(e_in, e_ex, **bad)
     with pytest.raises(ConfigError, match="saturation_level"):
         _estimate(e_in, e_ex, saturation_level=float("nan"))
+
+
+def test_donut_centroid_takes_all_the_light_of_an_aberrated_donut() -> None:
+    """Microns of coma throw light beyond the unaberrated radius plus the 10-px spill; the
+    centroid (which aligns the compensation) must still be that of all the light, as a
+    plain flux-weighted mean over the (noise-free) stamp gives it."""
+    n, r_out = 256, 60.0
+    yy, xx = np.mgrid[:n, :n].astype(float)
+    r = np.hypot(xx - 128.0, yy - 128.0)
+    # A smooth (not flat-topped, which the saturation test would refuse) ring ...
+    shade = 100.0 * (1.0 + 0.2 * r / r_out) * (1.0 + 0.1 * (xx - 128.0) / r_out)
+    img = np.where((r <= r_out) & (r >= 0.6 * r_out), shade, 0.0)
+    # ... and a faint crescent 12-22 px outside it on one side (2.5 % of the flux).
+    tail = (r > r_out + 12) & (r <= r_out + 22) & (xx > 150)
+    img[tail] = 0.025 * img.sum() / tail.sum()
+    truth = ((img * xx).sum() / img.sum(), (img * yy).sum() / img.sum())
+    d = prepare_donut(img, name="intra", outer_radius_px=r_out, margin_px=3.0)
+    assert abs(d.centroid_xy[0] - truth[0]) < 0.01 and abs(d.centroid_xy[1] - truth[1]) < 0.01
+    assert truth[0] - 128.0 > 1.0  # the tail moves the centroid: the check has teeth
+    assert abs(d.flux - img.sum()) / img.sum() < 1e-9

@@ -421,5 +421,8 @@ def check_not_swapped(intra: np.ndarray, extra: np.ndarray,
             f"aberrations: preference {p_f:+.2f} at {z_f:+.1f} sigma; vignetted part alone: "
             f"{p_v:+.2f} at {z_v:+.1f} sigma; +1 = as given, -1 = exchanged). Check which "
             "image is intra-focal (negative detector offset), and that neither camera "
-            "delivers its stamps turned by 180 degrees (which looks the same)")
+            "delivers its stamps turned by 180 degrees (which looks the same). Past the "
+            "geometric limit of curvature sensing (several um of wavefront at a corner, "
+            "validation Fig. 9) the donuts match neither footprint and are refused the same "
+            "way")
     return s
