@@ -412,7 +412,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
                                m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
                       for m in (m_in, m_ex)))
-    footprints = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
+    # The swapped-pair footprints are built on first use (PairGeometry.footprints).
+    footprint_inputs = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
     zc = basis.z[:, common].astype(float)
     gram = zc @ zc.T / max(int(common.sum()), 1)
     feedback_l = np.linalg.cholesky(gram) if algo.feedback_basis == "orthonormal" else None
@@ -439,7 +440,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                         centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
                         mean_gradient(mask_ex), time.perf_counter() - t0, gram, feedback_l,
                         rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
-                        footprints)
+                        footprint_inputs)
 
 
 # -- result -------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ import numpy as np
 from galsim.zernike import Zernike
 
 from ..core.instrument import Instrument
+from .sampling import annulus_samples
 
 __all__ = ["render_paraxial_pair"]
 
@@ -58,17 +59,7 @@ def render_paraxial_pair(inst: Instrument, zernikes_nm: dict[int, float] | np.nd
     out = []
     for sign, dist in ((1.0, f - l_m), (-1.0, f + l_m)):
         n = rng.poisson(n_photons) if poisson else int(n_photons)
-        if sampling == "quasi":
-            from scipy.stats import qmc
-
-            u = qmc.Sobol(d=2, scramble=True, seed=rng).random(n)
-            r = np.sqrt(inst.obscuration**2 + (1.0 - inst.obscuration**2) * u[:, 0])
-            t = 2 * np.pi * u[:, 1]
-        elif sampling == "random":
-            r = np.sqrt(rng.uniform(inst.obscuration**2, 1.0, n))
-            t = rng.uniform(0.0, 2 * np.pi, n)
-        else:
-            raise ValueError(f"sampling must be 'random' or 'quasi', got {sampling!r}")
+        r, t = annulus_samples(rng, n, inst.obscuration, sampling)
         x, y = r * np.cos(t), r * np.sin(t)
         xs = sign * l_m * big_r / f * x - dist * gx(x, y) / big_r
         ys = sign * l_m * big_r / f * y - dist * gy(x, y) / big_r

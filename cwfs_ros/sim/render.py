@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from ._paths import config_dir
+from .sampling import annulus_samples
 from .telescope import defocused
 
 __all__ = [
@@ -154,17 +155,8 @@ def trace_pupil_rays(
     r_out, eps = _pupil_geometry(optic)
 
     # Uniform over the annulus area.
-    if sampling == "random":
-        r = r_out * np.sqrt(rng.uniform(eps * eps, 1.0, n_rays))
-        phi = rng.uniform(0.0, 2.0 * np.pi, n_rays)
-    elif sampling == "quasi":
-        from scipy.stats import qmc
-
-        u = qmc.Sobol(d=2, scramble=True, seed=rng).random(n_rays)
-        r = r_out * np.sqrt(eps * eps + (1.0 - eps * eps) * u[:, 0])
-        phi = 2.0 * np.pi * u[:, 1]
-    else:
-        raise ValueError(f"sampling must be 'random' or 'quasi', got {sampling!r}")
+    rho, phi = annulus_samples(rng, n_rays, eps, sampling)
+    r = r_out * rho
     px = r * np.cos(phi)
     py = r * np.sin(phi)
 

@@ -136,28 +136,16 @@ def trace_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm
     """
     import batoid
 
+    from ..sim.sampling import annulus_samples
     from ..sim.telescope import defocused
 
     optic = defocused(tel, detector_offset_mm)
     wl = wavelength_nm * 1e-9
     thx, thy = (float(np.deg2rad(a)) for a in field_deg)
     eps = float(optic.pupilObscuration)
-    if sampling == "quasi":
-        from scipy.stats import qmc
-
-        u = qmc.Sobol(d=3, scramble=True, seed=rng).random(n_rays)
-    elif sampling == "random":
-        u = None
-    else:
-        raise ValueError(f"sampling must be 'random' or 'quasi', got {sampling!r}")
-    if u is None:
-        r = R_PUPIL_M * np.sqrt(rng.uniform(eps * eps, 1.0, n_rays))
-        phi = rng.uniform(0.0, 2 * np.pi, n_rays)
-        t = rng.uniform(0.0, exposure_s, n_rays)
-    else:
-        r = R_PUPIL_M * np.sqrt(eps * eps + (1.0 - eps * eps) * u[:, 0])
-        phi = 2 * np.pi * u[:, 1]
-        t = exposure_s * u[:, 2]
+    rho, phi, u_t = annulus_samples(rng, n_rays, eps, sampling, with_time=True)
+    r = R_PUPIL_M * rho
+    t = exposure_s * u_t
     px, py = r * np.cos(phi), r * np.sin(phi)
     rv = batoid.RayVector.fromStop(px, py, optic, wavelength=wl, theta_x=thx, theta_y=thy)
     if gradient is not None:
