@@ -54,6 +54,10 @@ from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
+from .argtypes import nonnegative_float as _nonnegative_float
+from .argtypes import positive_float as _positive_float
+from .argtypes import positive_int as _positive_int
+
 __all__ = [
     "DEFAULT_TOPICS",
     "STORAGES",
@@ -1229,34 +1233,6 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
 
 
 # ----------------------------------------------------------------------------- command line
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return v
-
-
-def _nonnegative_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
-    return v
 
 
 def _cli_error(args: argparse.Namespace, exc: BagError) -> Exception:

@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
+from .argtypes import finite_float as _finite_float
+from .argtypes import positive_int as _positive_int
 
 __all__ = ["main", "build_parser", "subcommand", "CliError"]
 
@@ -97,27 +99,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _error(args.command, str(exc))
         raise
 
-
-# -- shared argument types ----------------------------------------------------------------
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if value != value or value in (float("inf"), float("-inf")):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
 
 
 # -- estimate -----------------------------------------------------------------------------
