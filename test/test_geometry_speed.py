@@ -204,3 +204,42 @@ def test_map_tiles_match_the_direct_trace_and_are_reused() -> None:
         np.testing.assert_array_equal(tiled.transmitted, direct.transmitted)
         assert (~tiled.transmitted[ann]).any()  # vignetted: the masks are a real check
     assert mp.map_tile_builds == builds
+
+
+def test_tile_vignetting_traces_half_the_band_and_matches_the_direct_trace(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside a map tile the band the vignetting edges sweep is traced coarsely first and
+    only near the edge in full; the masks must still be those of the direct trace."""
+    inst = load_instrument("lsst")
+    x, y = _pupil_points()
+    x.setflags(write=False)
+    y.setflags(write=False)
+    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL)
+    traced: list[int] = []
+    real_trace = mp._trace_defocused
+
+    def counting(*args):
+        traced.append(args[-1].size)
+        return real_trace(*args)
+
+    rng = np.random.default_rng(21)
+    t = 0.125
+    for side, f0 in (("intra", FI0), ("extra", FE0)):
+        lo = np.floor(f0 / t) * t
+        fields = [tuple(float(v) for v in lo + rng.uniform(0.01, t - 0.01, 2))
+                  for _ in range(5)]
+        for k, fld in enumerate(fields):
+            monkeypatch.setattr(mp, "_trace_defocused", counting)
+            traced.clear()
+            tiled = mp.nominal_mapping(inst, side, x, y, field_deg=fld, tile_deg=t, **kw)
+            monkeypatch.setattr(mp, "_trace_defocused", real_trace)
+            direct = mp.nominal_mapping(inst, side, x, y, field_deg=fld, **kw)
+            np.testing.assert_array_equal(tiled.transmitted, direct.transmitted)
+            if k >= 3:  # served by the built tile: two passes, fewer rays than the band
+                key = next(k_ for k_ in mp._MAP_TILE_CACHE if k_[1] == side
+                           and k_[5] == mp._tile_of(fld, t))
+                _, always, never, _ = mp._MAP_TILE_CACHE[key]
+                band = int((~always & ~never).sum())
+                assert band >= mp._VIG_COARSE_MIN
+                assert len(traced) == 2
+                assert sum(traced) < 0.8 * band

@@ -85,6 +85,11 @@ class AlgorithmConfig:
     # Side (deg) of the field tiles over which the batoid mapping is interpolated
     # (:func:`.mapping._batoid_tiled`); 0: every star field traced directly.
     map_tile_deg: float = 0.0
+    # Star pairs of one corner after the first start their outer loop from its departure
+    # (estimate_wavefront(initial_nm=...), cwfs_ros.core.selection.estimate_pairs).  Only
+    # where the configured loop reaches its fixed point, which then does not depend on the
+    # start: lsq does; exp and fft stop short of it on split pairs (README, Accuracy).
+    warm_start: bool = False
 
     def __post_init__(self) -> None:
         problems = []
@@ -115,6 +120,8 @@ class AlgorithmConfig:
             problems.append(f"design_tile_deg must be in [0, 1], got {self.design_tile_deg!r}")
         if not (isinstance(self.map_tile_deg, (int, float)) and 0 <= self.map_tile_deg <= 1):
             problems.append(f"map_tile_deg must be in [0, 1], got {self.map_tile_deg!r}")
+        if not isinstance(self.warm_start, bool):
+            problems.append(f"warm_start must be true or false, got {self.warm_start!r}")
         if self.feedback_basis not in ("zernike", "orthonormal"):
             problems.append(f"feedback_basis must be 'zernike' or 'orthonormal', got "
                             f"{self.feedback_basis!r}")
@@ -402,7 +409,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     else:
         solver = LeastSquares((n, n), spacing, region, basis, common,
                               algo.edge_sigma_px * algo.oversample, mappings=(m_in, m_ex),
-                              kappa=kappa)
+                              kappa=kappa, weight=weight)
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))
     intrinsic = design_zernikes_tiled(inst, band, wavelength_nm, mid, algo.jmax,
@@ -493,6 +500,9 @@ class WavefrontResult:
     inputs: dict[str, PreparedDonut] = field(repr=False)
     noll: np.ndarray = field(default_factory=lambda: NOLL_REPORTED.copy())
     swap_check: str = "off"
+    # Z1..Z_jmax (nm) of the departure from design (``zernikes_all_nm`` before the design
+    # wavefront is added back; Z1-Z3 zero): what ``initial_nm`` of another pair takes.
+    departure_all_nm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly summary."""
@@ -529,6 +539,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
                        wavelength_nm: float | None = None,
                        defocal_offset_mm: float | None = None, solver: str = "exp",
                        saturation_level: float | None = None,
+                       initial_nm: np.ndarray | None = None,
                        **algorithm: Any) -> WavefrontResult:
     """Estimate the wavefront from an intra/extra-focal donut pair (paper Fig. 3).
 
@@ -545,6 +556,12 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         saturation_level: pixel value (input units) at which the detector saturates;
             defaults to the instrument's ``saturation_level`` (None: unknown, and only the
             plateau test of :mod:`.checks` detects saturation).
+        initial_nm: warm start: a departure from design (Noll Z1.., nm; Z1-Z3 ignored), e.g.
+            another star pair's estimate on the same sensor.  The outer loop then starts
+            compensated by it, at the full jmax from the first iteration (the schedule's
+            ramp-up protects a start from zero against caustics), and stops on convergence
+            as usual.  Converged, the result does not depend on the start: the loop's
+            fixed point is where the compensated images agree (README, Frames).
         **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
             tolerance_nm, inner_iterations, register_rim, feedback_basis, design_tile_deg)
@@ -619,14 +636,22 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
 
     jmax = algo.jmax
     w_comp = np.zeros(jmax)
-    estimate = np.zeros(jmax)
+    schedule = algo.schedule()
+    if initial_nm is not None:
+        start = np.asarray(initial_nm, dtype=float).ravel()[:jmax]
+        if not np.all(np.isfinite(start)):
+            raise ConfigError("initial_nm must be finite")
+        w_comp[:start.size] = start
+        w_comp[:3] = 0.0
+        schedule = [jmax] * algo.outer_iterations
+    estimate = w_comp.copy()
     history: list[np.ndarray] = []
     res_rms: list[float] = []
     caustic = False
     converged = False
     last = None
     idx = np.arange(1, jmax + 1)
-    for j_stage in algo.schedule():
+    for j_stage in schedule:
         derivs = geom.basis.derivative_fields(w_comp)
         centre_in = base_in - m_in.c_px_per_nm * (geom.mean_gradient_intra @ w_comp)
         centre_ex = base_ex - m_ex.c_px_per_nm * (geom.mean_gradient_extra @ w_comp)
@@ -701,6 +726,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         masks=masks,
         compensated=comp,
         inputs={"intra": don_in, "extra": don_ex},
+        departure_all_nm=np.concatenate([[0.0, 0.0, 0.0], estimate[3:]]),
         swap_check=("off" if swap is None else
                     "confirmed" if (swap.preference[1] > checks.swap_threshold
                                     and swap.significance[1] > checks.swap_min_significance)

@@ -245,6 +245,7 @@ class PairResult:
         swap_check: the estimator's swapped-pair outcome (``"confirmed"``,
             ``"inconclusive"``, ``"off"``), ``"skipped"`` when an earlier pair had confirmed
             the frames, ``""`` when the estimate failed (a swapped pair fails as such).
+        warm_start: the outer loop started from the first good pair's departure.
     """
 
     index: int
@@ -264,6 +265,7 @@ class PairResult:
     iterations: int = 0
     compute_ms: float = 0.0
     swap_check: str = ""
+    warm_start: bool = False
 
     @property
     def departure_nm(self) -> np.ndarray:
@@ -272,8 +274,16 @@ class PairResult:
 
 
 def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
-                   settings: EstimatorSettings = _DEFAULT_SETTINGS) -> list[PairResult]:
+                   settings: EstimatorSettings = _DEFAULT_SETTINGS, *,
+                   warm_start: bool | None = None) -> list[PairResult]:
     """Estimate every pair with each star's own field; never raises for a bad pair.
+
+    With ``warm_start`` (default: the solver's ``warm_start`` in ``config/algorithm.yaml``)
+    the pairs after the first good one start their outer loop from its departure from
+    design (``estimate_wavefront(initial_nm=...)``): the stars of one corner see nearly the
+    same departure, so the loop converges in about half the iterations, to the same fixed
+    point as from zero (README, Frames).  A warm start that folds into caustic is redone
+    from zero.
 
     Which half is intra-focal is a property of the two frames, not of a star pair: once one
     pair's swapped-pair check (:func:`.checks.check_not_swapped`) has found the images the
@@ -281,12 +291,15 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
     needs, ~4 ms a pair).  Until then every pair is checked, so exchanged frames are refused
     pair by pair, and an inconclusive pair confirms nothing.
     """
-    from .estimator import estimate_wavefront
+    from .estimator import estimate_wavefront, load_algorithm
 
     out = []
     nan = np.full(len(_NOLL), np.nan)
     kwargs = settings.estimator_kwargs()
+    if warm_start is None:
+        warm_start = load_algorithm(settings.solver).warm_start
     confirmed = False
+    start = None  # the first good pair's departure: the later pairs' warm start
     for k, (si, se) in enumerate(pairs):
         t0 = time.perf_counter()
         mid = (0.5 * (si.field_deg[0] + se.field_deg[0]),
@@ -297,8 +310,13 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
                       snr_intra=si.donut.snr, snr_extra=se.donut.snr,
                       noise_scale=pair_noise_scale(si.donut.snr, se.donut.snr))
         try:
-            r = estimate_wavefront(si.stamp, se.stamp, field_intra_deg=si.field_deg,
-                                   field_extra_deg=se.field_deg, **kwargs)
+            fields = dict(field_intra_deg=si.field_deg, field_extra_deg=se.field_deg)
+            r = estimate_wavefront(si.stamp, se.stamp, initial_nm=start, **fields, **kwargs)
+            common["warm_start"] = start is not None
+            if start is not None and r.caustic:
+                # The warm start folded the compensation: the paper's cold start decides.
+                r = estimate_wavefront(si.stamp, se.stamp, **fields, **kwargs)
+                common["warm_start"] = False
         except CwfsError as exc:
             tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
                                                      else "bad_image"))
@@ -330,6 +348,8 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
         out.append(PairResult(**common, status="ok", message="", zernikes_nm=z,
                               intrinsic_nm=np.asarray(r.intrinsic_nm, dtype=np.float64),
                               iterations=r.iterations, compute_ms=ms))
+        if start is None and warm_start:
+            start = r.departure_all_nm
     return out
 
 
