@@ -568,8 +568,9 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             another star pair's estimate on the same sensor.  The outer loop then starts
             compensated by it, at the full jmax from the first iteration (the schedule's
             ramp-up protects a start from zero against caustics) with the configured
-            ``warm_start_gain``, and stops on convergence as usual.  Converged, the result does not depend on the start: the loop's
-            fixed point is where the compensated images agree (README, Frames).
+            ``warm_start_gain``, and stops on convergence as usual.  Converged, the result
+            does not depend on the start: the loop's fixed point is where the compensated
+            images agree (README, Frames).
         **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
             tolerance_nm, inner_iterations, register_rim, feedback_basis, design_tile_deg)
