@@ -322,3 +322,22 @@ def test_multi_pair_uncertainty_factor_scales_combinations_only():
     np.testing.assert_array_equal(one[1].uncertainty_nm, one[0].uncertainty_nm)
     with pytest.raises(ConfigError, match="multi_pair_scale"):
         CombinationConfig(multi_pair_scale=0.1)
+
+
+def test_detection_refuses_non_finite_frames_anywhere():
+    """The finiteness check reads the block sums; a NaN in the rows or columns the binning
+    trims off, or values so large that a sum overflows, are caught too."""
+    from cwfs_ros.core.errors import ImageError, NonFiniteImageError
+
+    kw = dict(outer_radius_px=66.0, inner_radius_px=40.0, stamp_px=160)
+    base = np.random.default_rng(1).poisson(30.0, (403, 401)).astype(np.float32)
+    detect_donuts(base, **kw)  # finite: accepted
+    for where in ((10, 10), (402, 7), (9, 400), (402, 400)):
+        frame = base.copy()
+        frame[where] = np.nan
+        with pytest.raises(NonFiniteImageError, match="1 non-finite pixel"):
+            detect_donuts(frame, **kw)
+    frame = base.copy()
+    frame[20:22, 20:22] = np.float32(3e38)
+    with pytest.raises(ImageError, match="too large"):
+        detect_donuts(frame, **kw)
