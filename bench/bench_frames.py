@@ -135,6 +135,29 @@ def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
             "truth_departure_ref": truth_ref - design_ref}
 
 
+def machine_reference_ms() -> float:
+    """Median of 20 warm lsq estimates of one on-axis 160-px pair (one BLAS thread): the
+    machine's speed, to compare frame timings across machines (README Speed measured this
+    kind of estimate at 6.1 ms on the machine of the earlier figures)."""
+    from cwfs_ros.core import estimate_wavefront
+    from cwfs_ros.sim.render import render_donut
+    from cwfs_ros.sim.telescope import perturbed_telescope
+
+    tel = perturbed_telescope(np.zeros(50), band="r")
+    rng = np.random.default_rng(0)
+    imgs = [render_donut(tel, (0, 0), dz, wavelength_nm=WL, npix=160, n_photons=2e5, rng=rng)
+            for dz in (-1.5, 1.5)]
+    kw = dict(field_intra_deg=(0, 0), field_extra_deg=(0, 0), solver="lsq", tolerance_nm=0.0)
+    ts = []
+    with threadpool_limits(1):
+        for k in range(21):
+            t0 = time.perf_counter()
+            estimate_wavefront(*imgs, **kw)
+            if k:
+                ts.append(time.perf_counter() - t0)
+    return float(np.median(ts) * 1e3)
+
+
 def evaluate(trials: list[dict], comb: CombinationConfig) -> dict:
     one, many, z1, zn, n_used, unc1, uncn = [], [], [], [], [], [], []
     for t in trials:
@@ -237,6 +260,8 @@ def main() -> None:
     if four.any():
         print(f"  4-pair corners: warm {np.median(warm[four]):.0f} ms, cold "
               f"{np.median(cold[four]):.0f} ms (n={int(four.sum())})")
+    print(f"  machine reference: a warm on-axis lsq estimate takes {machine_reference_ms():.1f} "
+          "ms here (6.1 ms on the machine of README Speed's table)")
 
     if a.timing_only:
         return
