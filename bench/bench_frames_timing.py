@@ -1,0 +1,95 @@
+#!/usr/bin/env python
+"""Time per corner on fixed rendered frames, for A/B comparisons on a noisy machine.
+
+Renders ``--trials`` corner frame pairs once (as bench_frames.py does, same seeds) into
+``--cache`` (npz), then times ``estimate_corner_frames`` on them: every corner once to build
+the field tiles (steady state), then ``--reps`` passes with the pair-geometry cache cleared
+before each corner (new star fields, as every visit on the sky).  Prints the median for the
+4-pair corners and a machine reference (bench_frames.machine_reference_ms).
+
+Two checkouts compared on the same frames, alternately (the machine's speed drifts):
+
+  for i in 1 2 3; do
+    PYTHONPATH=/path/to/old .venv/bin/python bench/bench_frames_timing.py --tag old
+    .venv/bin/python bench/bench_frames_timing.py --tag new
+  done
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_frames as bf  # noqa: E402
+
+from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
+from cwfs_ros.core.estimator import pair_geometry  # noqa: E402
+from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.core.selection import estimate_corner_frames, load_selection_config  # noqa: E402
+from cwfs_ros.sim.frames import random_stars, render_frame  # noqa: E402
+
+
+def frames(cache: Path, trials: int, seed: int) -> list[dict[str, np.ndarray]]:
+    """The trials' (intra, extra) frames, rendered on first use."""
+    cache.mkdir(parents=True, exist_ok=True)
+    halves = load_half_chips()["R00"]
+    out = []
+    for k in range(trials):
+        path = cache / f"trial{k:02d}.npz"
+        if not path.exists():
+            rng = np.random.default_rng(seed + 1000 * k)
+            tel, _ = bf.draw_telescope(rng, halves["intra"].mid_deg)
+            imgs = {}
+            for side in ("intra", "extra"):
+                h = halves[side]
+                stars = random_stars(rng, (2000, 1000), n_good=(3, 6), flux_range=(2e5, 1e6),
+                                     blend=True, faint=True, faint_flux=1.2e4)
+                imgs[side] = render_frame(tel, stars, field_ref_deg=h.field_deg,
+                                          detector_offset_mm=h.detector_offset_mm,
+                                          shape_px=(2000, 1000), sky_per_pixel=50.0,
+                                          rng=rng).image
+            np.savez(path, **imgs)
+            print(f"rendered trial {k}", flush=True)
+        with np.load(path) as z:
+            out.append({"intra": z["intra"], "extra": z["extra"]})
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cache", type=Path, default=Path("out/bench_frames_cache"))
+    ap.add_argument("--trials", type=int, default=12)
+    ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=20261126)
+    ap.add_argument("--tag", default="")
+    a = ap.parse_args()
+    data = frames(a.cache, a.trials, a.seed)
+    settings = EstimatorSettings(solver="lsq")
+    cfg = load_selection_config(solver="lsq", max_pairs=4)
+    kw = dict(corner="R00", settings=settings, config=cfg)
+    rows = []
+    with threadpool_limits(1):
+        for d in data:  # field tiles built: the steady state of a running node
+            estimate_corner_frames(d["intra"], d["extra"], **kw)
+        for _ in range(a.reps):
+            for d in data:
+                pair_geometry.cache_clear()
+                r = estimate_corner_frames(d["intra"], d["extra"], **kw)
+                if len(r.pairs) == 4:
+                    rows.append([r.timing_ms[k] for k in ("total", "detect", "estimate")])
+    t = np.median(np.array(rows), axis=0) if rows else np.full(3, np.nan)
+    print(f"{a.tag or 'this checkout'}: 4-pair corners at new star fields, median of "
+          f"{len(rows)}: total {t[0]:.0f} ms (detection {t[1]:.0f}, pairs {t[2]:.0f}); "
+          f"machine reference {bf.machine_reference_ms():.1f} ms", flush=True)
+
+
+if __name__ == "__main__":
+    main()
