@@ -173,7 +173,7 @@ def test_distance_transform_dilation_equals_binary_dilation() -> None:
     masks = [rng.random((120, 120)) < 0.002, rng.random((90, 90)) < 0.3,
              np.hypot(xx - 57.3, yy - 61.0) < 37.0, np.zeros((40, 40), bool)]
     for m in masks:
-        for r in (1, 4, 12):
+        for r in (1, 2, 3, 4, 5, 6, 7, 12):  # both methods (rectangles up to 6)
             yd, xd = np.mgrid[-r:r + 1, -r:r + 1]
             disk = xd * xd + yd * yd <= r * r
             np.testing.assert_array_equal(_dilate(m, r), binary_dilation(m, structure=disk))

@@ -39,7 +39,7 @@ import numpy as np
 import yaml
 from scipy import fft as sfft
 from scipy.linalg import solve_triangular
-from scipy.ndimage import distance_transform_edt, gaussian_filter
+from scipy.ndimage import distance_transform_edt, gaussian_filter, maximum_filter1d
 
 from ..paths import config_dir
 from .checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
@@ -259,16 +259,40 @@ def _disk(radius: int) -> np.ndarray:
     return xx * xx + yy * yy <= radius * radius
 
 
-def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """``binary_dilation(mask, structure=_disk(radius))``, from a Euclidean distance transform.
+@lru_cache(maxsize=16)
+def _disk_rectangles(radius: int) -> tuple[tuple[int, int], ...]:
+    """Half-widths (x, y) of the rectangles whose union is ``_disk(radius)``: one per step
+    of the disk's staircase edge (radius 4: 4 rectangles)."""
+    w = [int(np.floor(np.sqrt(radius * radius - d * d) + 1e-9)) for d in range(radius + 1)]
+    return tuple((w[d], d) for d in range(radius + 1) if d == radius or w[d] > w[d + 1])
 
-    The same set (a pixel is within the disk of some True pixel iff its distance to the
-    nearest one is <= radius; the squared distances are integers, so the float comparison is
-    exact), at a cost that does not grow with the radius.
+
+# Up to this radius the rectangle decomposition beats the distance transform (radius 4:
+# 1.1 against 2.8 ms on a 150 x 150 pupil grid; radius 12: 3.4 against 2.8 ms).
+_DILATE_RECT_MAX = 6
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``binary_dilation(mask, structure=_disk(radius))``, computed fast.
+
+    Small radii: the union of the dilations by the disk's rectangles
+    (:func:`_disk_rectangles`), each separable into two running maxima.  Larger ones: a
+    Euclidean distance transform (a pixel is within the disk of some True pixel iff its
+    distance to the nearest one is <= radius; the squared distances are integers, so the
+    float comparison is exact), whose cost does not grow with the radius.  Both give the
+    same set (test_geometry_speed).
     """
     if not mask.any():
         return np.zeros_like(mask, dtype=bool)
-    return distance_transform_edt(~mask) <= radius
+    if radius > _DILATE_RECT_MAX:
+        return distance_transform_edt(~mask) <= radius
+    m = mask.astype(np.uint8)
+    out = np.zeros(mask.shape, bool)
+    for a, b in _disk_rectangles(int(radius)):
+        t = maximum_filter1d(m, 2 * a + 1, axis=1, mode="constant") if a else m
+        t = maximum_filter1d(t, 2 * b + 1, axis=0, mode="constant") if b else t
+        out |= t.astype(bool)
+    return out
 
 
 def _kappa(m: ImageMapping, mask: np.ndarray) -> float:
