@@ -56,15 +56,30 @@ class PreparedDonut:
     snr: float
 
 
+def order_statistics(values: np.ndarray, ks: list[int]) -> list[float]:
+    """The ``k``-th smallest of the flat array ``values`` for each ``k`` in ``ks``.
+
+    Largest ``k`` first, each a single-kth partition of the part left of the previous one
+    (which holds exactly the smaller values): numpy's partition with a list of kth is ~6x
+    slower (0.7 against 0.12 ms for three quartiles of 20k values).
+    """
+    found: dict[int, float] = {}
+    part = values
+    for k in sorted(set(ks), reverse=True):
+        part = np.partition(part, k)
+        found[k] = float(part[k])
+        part = part[:k]
+    return [found[k] for k in ks]
+
+
 def _robust_level(values: np.ndarray) -> tuple[float, float]:
     """Median and quartile-based sigma of background pixels (robust to a few stars/cosmics).
 
-    One partition gives the three quartiles; sigma = IQR / 1.349 for Gaussian noise.
+    The three quartiles are order statistics; sigma = IQR / 1.349 for Gaussian noise.
     """
     n = values.size
-    k = [n // 4, n // 2, (3 * n) // 4]
-    q1, med, q3 = np.partition(values, k)[k]
-    return float(med), float(q3 - q1) / 1.349
+    q1, med, q3 = order_statistics(values, [n // 4, n // 2, (3 * n) // 4])
+    return med, (q3 - q1) / 1.349
 
 
 @lru_cache(maxsize=8)
