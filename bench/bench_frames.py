@@ -72,12 +72,12 @@ def draw_telescope(rng: np.random.Generator, mid: tuple[float, float]):
             return tel, tot
 
 
-def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
+def render_trial(k: int, args, halves):
+    """Trial ``k``'s telescope, its total wavefront (nm) and the corner's two frames
+    (``SimulatedFrame`` per side), all drawn from the trial's own seed."""
     rng = np.random.default_rng(args.seed + 1000 * k)
-    ref = halves["intra"].mid_deg
-    tel, tot = draw_telescope(rng, ref)
+    tel, tot = draw_telescope(rng, halves["intra"].mid_deg)
     shape = (args.rows, args.cols)
-    t0 = time.perf_counter()
     frames = {}
     for side in ("intra", "extra"):
         h = halves[side]
@@ -87,6 +87,13 @@ def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
         frames[side] = render_frame(tel, stars, field_ref_deg=h.field_deg,
                                     detector_offset_mm=h.detector_offset_mm, shape_px=shape,
                                     sky_per_pixel=args.sky, rng=rng)
+    return tel, tot, frames
+
+
+def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
+    ref = halves["intra"].mid_deg
+    t0 = time.perf_counter()
+    tel, tot, frames = render_trial(k, args, halves)
     t_render = time.perf_counter() - t0
     with threadpool_limits(1):
         cold = estimate_corner_frames(frames["intra"].image, frames["extra"].image,
@@ -184,7 +191,8 @@ def evaluate(trials: list[dict], comb: CombinationConfig) -> dict:
             "n_terms": int(zna.size)}
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
+    """The command line (bench_frames_timing.py reads its scene defaults)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=16, help="evaluation trials")
     ap.add_argument("--calib-trials", type=int, default=14, help="noise-model fit trials")
@@ -204,7 +212,11 @@ def main() -> None:
                     help="store the fitted noise model in config/selection.yaml")
     ap.add_argument("--timing-only", action="store_true",
                     help="run --trials trials (no calibration trials) and report timing only")
-    a = ap.parse_args()
+    return ap
+
+
+def main() -> None:
+    a = parser().parse_args()
     if a.timing_only:
         a.calib_trials = 0
     halves = load_half_chips()[a.corner]

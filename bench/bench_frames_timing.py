@@ -34,29 +34,20 @@ from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
 from cwfs_ros.core.estimator import pair_geometry  # noqa: E402
 from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
 from cwfs_ros.core.selection import estimate_corner_frames, load_selection_config  # noqa: E402
-from cwfs_ros.sim.frames import random_stars, render_frame  # noqa: E402
 
 
 def frames(cache: Path, trials: int, seed: int) -> list[dict[str, np.ndarray]]:
-    """The trials' (intra, extra) frames, rendered on first use."""
+    """The trials' (intra, extra) frames, rendered on first use with bench_frames.py's
+    scene (its default arguments)."""
     cache.mkdir(parents=True, exist_ok=True)
     halves = load_half_chips()["R00"]
+    scene = bf.parser().parse_args(["--seed", str(seed)])
     out = []
     for k in range(trials):
         path = cache / f"trial{k:02d}.npz"
         if not path.exists():
-            rng = np.random.default_rng(seed + 1000 * k)
-            tel, _ = bf.draw_telescope(rng, halves["intra"].mid_deg)
-            imgs = {}
-            for side in ("intra", "extra"):
-                h = halves[side]
-                stars = random_stars(rng, (2000, 1000), n_good=(3, 6), flux_range=(2e5, 1e6),
-                                     blend=True, faint=True, faint_flux=1.2e4)
-                imgs[side] = render_frame(tel, stars, field_ref_deg=h.field_deg,
-                                          detector_offset_mm=h.detector_offset_mm,
-                                          shape_px=(2000, 1000), sky_per_pixel=50.0,
-                                          rng=rng).image
-            np.savez(path, **imgs)
+            _, _, rendered = bf.render_trial(k, scene, halves)
+            np.savez(path, **{side: f.image for side, f in rendered.items()})
             print(f"rendered trial {k}", flush=True)
         with np.load(path) as z:
             out.append({"intra": z["intra"], "extra": z["extra"]})

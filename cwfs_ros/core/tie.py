@@ -228,9 +228,7 @@ def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
         grid.reshape(shape)
     i0 = model.ravel()[region]
     # Single precision for the (jmax, n) arrays: the lsq loop's fixed point is where
-    # B dI = 0, which float32 rounding of B moves by ~1e-7 of the signal; (B B^T)^-1
-    # only sets how fast the loop gets there.  (float64 with np.linalg.solve on the
-    # (jmax, n) right-hand side cost 13 ms a pair, this ~4 ms; README Speed.)
+    # B dI = 0, which float32 rounding of B moves by ~1e-7 of the signal.
     m = region.size
     f32 = np.float32
     zx, zy = basis.dx[1:], basis.dy[1:]
@@ -311,7 +309,10 @@ class LeastSquares:
         self.jmax = basis.jmax
         b = response_matrix(shape, spacing, region, basis, pupil, edge_sigma, mappings, kappa,
                             weight)
-        # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix.
+        # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix: the small Gram matrix
+        # inverted, then one float32 product; (B B^T)^-1 only sets how fast the loop
+        # reaches its fixed point.  (In float64 with np.linalg.solve on the (jmax, n)
+        # right-hand side the set-up cost 13 ms a pair, now ~5 ms; README Frames.)
         b64 = b.astype(np.float64)
         gram = b64 @ b64.T
         self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
