@@ -206,40 +206,86 @@ def test_map_tiles_match_the_direct_trace_and_are_reused() -> None:
     assert mp.map_tile_builds == builds
 
 
-def test_tile_vignetting_traces_half_the_band_and_matches_the_direct_trace(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Inside a map tile the band the vignetting edges sweep is traced coarsely first and
-    only near the edge in full; the masks must still be those of the direct trace."""
+def _tiled_and_direct(monkeypatch: pytest.MonkeyPatch, side: str, fields: list, x, y,
+                      traced: list[int]) -> list[tuple]:
+    """Tiled and direct masks at ``fields`` of one tile; ``traced`` collects the sizes of
+    the tiled path's ray traces per field."""
     inst = load_instrument("lsst")
+    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL)
+    real_trace = mp._trace_defocused
+    out = []
+    for fld in fields:
+        calls: list[int] = []
+
+        def counting(*args, calls=calls):
+            calls.append(args[-1].size)
+            return real_trace(*args)
+
+        monkeypatch.setattr(mp, "_trace_defocused", counting)
+        tiled = mp.nominal_mapping(inst, side, x, y, field_deg=fld, tile_deg=0.125, **kw)
+        monkeypatch.setattr(mp, "_trace_defocused", real_trace)
+        direct = mp.nominal_mapping(inst, side, x, y, field_deg=fld, **kw)
+        traced.append(sum(calls))
+        out.append((tiled.transmitted, direct.transmitted))
+    return out
+
+
+def _tile_fields(f0: np.ndarray, n: int, rng: np.random.Generator) -> list[tuple]:
+    lo = np.floor(f0 / 0.125) * 0.125
+    return [tuple(float(v) for v in lo + rng.uniform(0.01, 0.115, 2)) for _ in range(n)]
+
+
+def test_tile_vignetting_from_aperture_edges_matches_the_direct_trace(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside a map tile the swept band is decided from interpolated ray positions on the
+    apertures, with (almost) no ray traced; the masks must be those of the direct trace."""
     x, y = _pupil_points()
     x.setflags(write=False)
     y.setflags(write=False)
-    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL)
-    traced: list[int] = []
-    real_trace = mp._trace_defocused
-
-    def counting(*args):
-        traced.append(args[-1].size)
-        return real_trace(*args)
-
     rng = np.random.default_rng(21)
-    t = 0.125
     for side, f0 in (("intra", FI0), ("extra", FE0)):
-        lo = np.floor(f0 / t) * t
-        fields = [tuple(float(v) for v in lo + rng.uniform(0.01, t - 0.01, 2))
-                  for _ in range(5)]
-        for k, fld in enumerate(fields):
-            monkeypatch.setattr(mp, "_trace_defocused", counting)
-            traced.clear()
-            tiled = mp.nominal_mapping(inst, side, x, y, field_deg=fld, tile_deg=t, **kw)
-            monkeypatch.setattr(mp, "_trace_defocused", real_trace)
-            direct = mp.nominal_mapping(inst, side, x, y, field_deg=fld, **kw)
-            np.testing.assert_array_equal(tiled.transmitted, direct.transmitted)
-            if k >= 3:  # served by the built tile: two passes, fewer rays than the band
-                key = next(k_ for k_ in mp._MAP_TILE_CACHE if k_[1] == side
-                           and k_[5] == mp._tile_of(fld, t))
-                _, always, never, _ = mp._MAP_TILE_CACHE[key]
-                band = int((~always & ~never).sum())
-                assert band >= mp._VIG_COARSE_MIN
-                assert len(traced) == 2
-                assert sum(traced) < 0.8 * band
+        traced: list[int] = []
+        pairs = _tiled_and_direct(monkeypatch, side, _tile_fields(f0, 8, rng), x, y, traced)
+        for tiled, direct in pairs:
+            np.testing.assert_array_equal(tiled, direct)
+        key = next(k_ for k_ in mp._MAP_TILE_CACHE if k_[1] == side
+                   and k_[5] == mp._tile_of(_tile_fields(f0, 1, rng)[0], 0.125))
+        _, always, sweep, edges, _ = mp._MAP_TILE_CACHE[key]
+        assert edges is not None and sweep.size > 500  # a real vignetting band
+        # The tile is built at the third field and serves the next five: at most a few
+        # points near an edge are traced for each (tracing the band would be > 500 rays).
+        assert max(traced[3:]) <= 10
+
+
+def test_aperture_margins_follow_batoid_obscurations() -> None:
+    """The margin rule of mp._aperture against batoid's own ``contains``."""
+    import batoid
+
+    rng = np.random.default_rng(3)
+    px, py = rng.uniform(-2.5, 2.5, (2, 20000))
+    for obsc in (batoid.ObscNegation(batoid.ObscCircle(1.2, x=0.3, y=-0.2)),
+                 batoid.ObscNegation(batoid.ObscAnnulus(0.7, 1.9, x=-0.1)),
+                 batoid.ObscCircle(0.8, y=0.4),
+                 batoid.ObscAnnulus(0.5, 1.0)):
+        x0, y0, inner, outer, sign = mp._aperture(obsc)
+        rho = np.hypot(px - x0, py - y0)
+        passes = sign * np.minimum(outer - rho, rho - inner) > 0
+        np.testing.assert_array_equal(passes, ~obsc.contains(px, py))
+    assert mp._aperture(batoid.ObscRectangle(1.0, 2.0)) is None
+
+
+def test_tile_without_an_edge_model_traces_its_band(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An optic with an aperture that is not a circle or annulus gets no edge model: the
+    tile traces its whole swept band per star, with the same masks."""
+    monkeypatch.setattr(mp, "_MAP_TILE_CACHE", {})
+    monkeypatch.setattr(mp, "_map_tile_requests", {})
+    monkeypatch.setattr(mp, "_aperture", lambda obscuration: None)
+    x, y = _pupil_points()
+    traced: list[int] = []
+    pairs = _tiled_and_direct(monkeypatch, "extra", _tile_fields(FE0, 4, np.random.default_rng(4)),
+                              x, y, traced)
+    for tiled, direct in pairs:
+        np.testing.assert_array_equal(tiled, direct)
+    (_, always, sweep, edges, _), = mp._MAP_TILE_CACHE.values()
+    assert edges is None
+    assert traced[3] == sweep.size > 500

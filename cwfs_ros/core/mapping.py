@@ -390,11 +390,13 @@ def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np
 # fields).  Each tile is fitted once from a 5x5 grid of full traces, which also give the
 # vignetting at the nodes: an annulus point transmitted (or vignetted) at every node is
 # taken as such over the tile -- the field set in which a vignetting circle (pupil-sized,
-# moving linearly with field) covers a pupil point is a disk far larger than the tile -- and
-# only the points whose state changes across the tile are traced per star.  A tile whose
-# nodes have failed rays or whose coefficient fit leaves more than _MAP_TILE_MAX_RESID_PX at
-# its nodes falls back to the direct path, as do the tile's first _DESIGN_TILE_AFTER - 1
-# fields (the tile costs 50 full traces, ~1.5 s).
+# moving linearly with field) covers a pupil point is a disk far larger than the tile.  The
+# points whose state changes across the tile (the band the vignetting edges sweep) are
+# decided per star from their ray positions on the apertures, interpolated in field like
+# the mapping (:class:`_ApertureEdges`).  A tile whose nodes have failed rays or whose
+# coefficient fit leaves more than _MAP_TILE_MAX_RESID_PX at its nodes falls back to the
+# direct path, as do the tile's first _DESIGN_TILE_AFTER - 1 fields (the tile costs 50
+# full traces, ~1.5 s).
 
 _MAP_TILE_NODES = 5
 _MAP_TILE_MAX_RESID_PX = 1e-4
@@ -408,7 +410,8 @@ map_tile_builds = 0
 def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
               band: str, wavelength_nm: float, tile: tuple[int, int], tile_deg: float,
               op: _FitOperator, annulus: np.ndarray) -> tuple | None:
-    """(coefficient polynomial, always-transmitted, never-transmitted, node rms) or None."""
+    """(coefficient shares, always-transmitted, swept points, their aperture edges, node
+    rms) or None."""
     global map_tile_builds
     map_tile_builds += 1
     u, v, nodes = _tile_nodes(tile, tile_deg, _MAP_TILE_NODES)
@@ -432,6 +435,9 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
         return None
     masks = np.array(masks)
     always, never = masks.all(axis=0), ~masks.any(axis=0)
+    sweep = np.flatnonzero(~always & ~never)
+    edges = _aperture_edges(inst, side, defocus_mm, x[sweep], y[sweep], band, wavelength_nm,
+                            nodes, mono, masks[:, sweep]) if sweep.size else None
     # The mapping at a field is linear in the tile's monomials, so each monomial's share of
     # the six mapped quantities at every point is precomputed: a new field then reads
     # (n_mono, 6, n) values (~6 MB) instead of the three (jfit, n) float64 bases (~40 MB),
@@ -443,9 +449,9 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     shares = np.concatenate([np.einsum("kjc,jn->kcn", per_mono, b)
                              for b in (op.z, op.dx, op.dy)], axis=1)
     centre, variation = shares[0], shares[1:].astype(np.float32)
-    for a in (centre, variation, always, never):
+    for a in (centre, variation, always, sweep):
         a.setflags(write=False)
-    return (centre, variation), always, never, max(rms)
+    return (centre, variation), always, sweep, edges, max(rms)
 
 
 def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
@@ -467,62 +473,178 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
     entry = _MAP_TILE_CACHE[key]
     if entry is None:
         return None
-    (centre, variation), always, never, rms = entry
+    (centre, variation), always, sweep, edges, rms = entry
     mono = _tile_monomials(*_tile_local((fx, fy), tile, tile_deg))
     # Rows: x, y, d x/d px, d y/d px, d x/d py, d y/d py (pupil coordinates px, py); the
     # first monomial is the constant 1.
     fxm, fym, jxx, jyx, jxy, jyy = centre + np.tensordot(mono[1:].astype(np.float32),
                                                           variation, axes=1)
     transmitted = _vignetting_in_tile(inst, side, defocus_mm, x, y, band, wavelength_nm,
-                                      (fx, fy), op, always, never)
+                                      (fx, fy), mono, always, sweep, edges)
     return (fxm, fym, jxx, jxy, jyx, jyy), transmitted & annulus, rms
 
 
-# Below this many undecided points a tile traces them all: the coarse pass saves nothing.
-_VIG_COARSE_MIN = 256
+# A swept point whose margin to some aperture edge is within this at a star's field is
+# traced rather than interpolated: the interpolated ray positions are ~1e-12 m from the
+# trace (test_geometry_speed), so this is a million times the error, and about one swept
+# point in a thousand is traced.
+_EDGE_TRACE_M = 1e-6
+# An aperture is kept for a swept point if the point's margin to it comes within this of
+# zero anywhere in the tile (the fitted positions on a 17 x 17 field grid); the others
+# transmit the point over the whole tile.
+_EDGE_KEEP_M = 1e-4
+
+
+def _aperture(obscuration) -> tuple[float, float, float, float, float] | None:
+    """``(x0, y0, inner, outer, sign)`` of a circular or annular aperture (batoid
+    obscuration), or None for any other shape.  A ray at distance rho from (x0, y0)
+    passes where ``sign * min(outer - rho, rho - inner) > 0``: sign +1 for a clear
+    aperture (``ObscNegation`` of a circle or annulus), -1 for a blocking one."""
+    import batoid
+
+    sign = -1.0
+    if isinstance(obscuration, batoid.ObscNegation):
+        obscuration, sign = obscuration.original, 1.0
+    if isinstance(obscuration, batoid.ObscCircle):
+        return obscuration.x, obscuration.y, -np.inf, obscuration.radius, sign
+    if isinstance(obscuration, batoid.ObscAnnulus):
+        return obscuration.x, obscuration.y, obscuration.inner, obscuration.outer, sign
+    return None
+
+
+def _interfaces(optic):
+    """The interfaces a trace passes, in order (CompoundOptic.trace's recursion)."""
+    import batoid
+
+    for item in optic.items:
+        if item.skip:
+            continue
+        if isinstance(item, batoid.CompoundOptic):
+            yield from _interfaces(item)
+        else:
+            yield item
+
+
+@dataclass(frozen=True)
+class _ApertureEdges:
+    """Vignetting of a map tile's swept points from their rays' positions on the apertures.
+
+    A ray is vignetted where it falls outside a clear aperture (mirror annuli, lens and
+    filter rims).  Its position on each aperture, in the aperture's frame, is smooth in
+    field, so it is fitted per point with the tile's quartic in field like the mapping
+    coefficients; at a star's field the positions are evaluated and compared with the
+    aperture edges.  Entry ``e`` stands for one (aperture, swept point) pair that comes
+    near the edge somewhere in the tile.
+    """
+
+    n_points: int
+    point: np.ndarray      # (e,) swept point of each entry
+    centre: np.ndarray     # (2, e) ray position at the tile centre [m]
+    variation: np.ndarray  # (n_mono - 1, 2, e) shares of the other monomials [m]
+    aperture: np.ndarray   # (5, e) x0, y0, inner, outer, sign (see _aperture)
+
+    def margins(self, mono: np.ndarray) -> np.ndarray:
+        """(e,) signed distance [m] of each entry's ray inside its aperture's edge."""
+        pos = self.centre + np.tensordot(mono[1:], self.variation, axes=1)
+        x0, y0, inner, outer, sign = self.aperture
+        rho = np.hypot(pos[0] - x0, pos[1] - y0)
+        return sign * np.minimum(outer - rho, rho - inner)
+
+    def transmitted(self, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per swept point at the field of ``mono``: transmitted, and too close to an edge
+        to tell (to be traced)."""
+        m = self.margins(mono)
+        blocked = np.bincount(self.point, weights=m <= 0.0, minlength=self.n_points)
+        unsure = np.bincount(self.point, weights=np.abs(m) < _EDGE_TRACE_M,
+                             minlength=self.n_points)
+        return blocked == 0, unsure > 0
+
+
+def _aperture_edges(inst: Instrument, side: str, defocus_mm: float, xs: np.ndarray,
+                    ys: np.ndarray, band: str, wavelength_nm: float,
+                    nodes: list[tuple[float, float]], mono: np.ndarray,
+                    node_masks: np.ndarray) -> _ApertureEdges | None:
+    """Fit the swept points' aperture positions over a tile (see :class:`_ApertureEdges`).
+
+    None -- the tile's swept points are then traced per star -- if an aperture is not a
+    circle or annulus, a ray fails at a node, the fit leaves more than 1e-9 m at the nodes,
+    or the edges do not reproduce the traced masks ``node_masks`` (n_nodes, n) exactly.
+    """
+    import batoid
+
+    dz = (-1.0 if side == "intra" else 1.0) * defocus_mm * 1e-3
+    tel = _defocused_telescope(inst.batoid_optic, band, dz)
+    stops = [(item, _aperture(item.obscuration)) for item in _interfaces(tel)]
+    if any(ap is None for item, ap in stops if item.obscuration is not None):
+        return None
+    big_r = tel.pupilSize / 2.0
+    pos = []
+    for node in nodes:
+        rv = batoid.RayVector.fromStop(xs * big_r, ys * big_r, optic=tel,
+                                       wavelength=wavelength_nm * 1e-9,
+                                       theta_x=np.deg2rad(node[0]), theta_y=np.deg2rad(node[1]))
+        at = []
+        for item, ap in stops:
+            item.trace(rv)  # the interaction, then the obscuration, as in tel.trace
+            if ap is not None:
+                at.append((rv.x.copy(), rv.y.copy()))
+        if rv.failed.any():
+            return None
+        pos.append(at)
+    aps = np.array([ap for _, ap in stops if ap is not None]).T  # (5, n_apertures)
+    pos = np.array(pos)  # (n_nodes, n_apertures, 2, n)
+    n_nodes, n_ap, _, n = pos.shape
+    poly, *_ = np.linalg.lstsq(mono, pos.reshape(n_nodes, -1), rcond=None)
+    if np.abs(mono @ poly - pos.reshape(n_nodes, -1)).max() > 1e-9:
+        return None
+    poly = poly.reshape(len(poly), n_ap, 2, n)
+
+    def margin(p: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Margins of positions p (..., m, 2, n) inside apertures a (5, m): (..., m, n)."""
+        x0, y0, inner, outer, sign = (v[:, None] for v in a)
+        rho = np.hypot(p[..., 0, :] - x0, p[..., 1, :] - y0)
+        return sign * np.minimum(outer - rho, rho - inner)
+
+    if not np.array_equal((margin(pos, aps) > 0).all(axis=1), node_masks):
+        return None
+    t = np.linspace(-1.0, 1.0, 17)
+    fine = _tile_monomials(*(a.ravel() for a in np.meshgrid(t, t)))
+    near = np.concatenate([
+        margin(np.tensordot(fine, poly[:, k:k + 1], axes=1), aps[:, k:k + 1]).min(axis=0)
+        for k in range(n_ap)]) < _EDGE_KEEP_M  # (n_ap, n)
+    ap_idx, point = np.nonzero(near)
+    kept = poly[:, ap_idx, :, point]  # (e, n_mono, 2)
+    return _ApertureEdges(n, point, np.ascontiguousarray(kept[:, 0, :].T),
+                          np.ascontiguousarray(kept[:, 1:, :].transpose(1, 2, 0)),
+                          np.ascontiguousarray(aps[:, ap_idx]))
 
 
 def _vignetting_in_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
                         y: np.ndarray, band: str, wavelength_nm: float,
-                        field_deg: tuple[float, float], op: _FitOperator,
-                        always: np.ndarray, never: np.ndarray) -> np.ndarray:
-    """Transmitted points at ``field_deg`` inside a map tile.
+                        field_deg: tuple[float, float], mono: np.ndarray,
+                        always: np.ndarray, sweep: np.ndarray,
+                        edges: _ApertureEdges | None) -> np.ndarray:
+    """Transmitted points at ``field_deg`` (tile monomials ``mono``) inside a map tile.
 
-    The tile decides the points transmitted (or vignetted) at all of its nodes; the others
-    lie in the band the vignetting edges sweep across the tile.  Of those, every other
-    lattice point in each direction is traced first; a band point whose window of traced
-    and tile-decided neighbours agrees takes their state
-    (:meth:`_FitOperator.infer_transmitted`), and only the points near the edge itself are
-    traced next.  An undecided point that is not a coarse point has at least the four
-    coarse points diagonally around it in its window, which no edge can all separate from
-    it, so it is traced whenever the edge passes near.  The masks are those of tracing
-    every band point (checked at random fields of all four corners, test_geometry_speed);
-    about half the rays (2 -> 1 ms a side at the LSST corners).
+    The tile decides the points transmitted (or vignetted) at all of its nodes; the swept
+    points in between are decided by their aperture edges, and only those within
+    _EDGE_TRACE_M of an edge are traced (all of them when the tile has no edge model).  The
+    masks are those of the direct trace (test_geometry_speed); a side costs ~0.2 ms instead
+    of ~1 ms of tracing at the LSST corners.
     """
     transmitted = always.copy()
-    todo = np.flatnonzero(~always & ~never)
-    if todo.size == 0:
+    if sweep.size == 0:
         return transmitted
-    if op.lattice is None or todo.size < _VIG_COARSE_MIN:
+    todo = sweep
+    if edges is not None:
+        tr, unsure = edges.transmitted(mono)
+        transmitted[sweep] = tr
+        todo = sweep[unsure]
+    if todo.size:
         *_, tr = _trace_defocused(inst, band, wavelength_nm, field_deg, side, defocus_mm,
                                   x[todo], y[todo])
         transmitted[todo] = tr
-        return transmitted
-    shape, flat = op.lattice
-    row, col = np.divmod(flat[todo], shape[1])
-    coarse = todo[(row % 2 == 0) & (col % 2 == 0)]
-    *_, tr = _trace_defocused(inst, band, wavelength_nm, field_deg, side, defocus_mm,
-                              x[coarse], y[coarse])
-    known = always | never
-    known[coarse] = True
-    transmitted[coarse] = tr
-    state = op.infer_transmitted(known, transmitted, np.ones(x.size, bool))
-    rest = np.flatnonzero(state < 0)
-    if rest.size:
-        *_, tr = _trace_defocused(inst, band, wavelength_nm, field_deg, side, defocus_mm,
-                                  x[rest], y[rest])
-        state[rest] = tr
-    return state > 0
+    return transmitted
 
 
 # -- the paper's poly10 tables (§3.3) ------------------------------------------------------
