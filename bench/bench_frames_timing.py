@@ -1,11 +1,13 @@
 #!/usr/bin/env python
 """Time per corner on fixed rendered frames, for A/B comparisons on a noisy machine.
 
-Renders ``--trials`` corner frame pairs once (as bench_frames.py does, same seeds) into
-``--cache`` (npz), then times ``estimate_corner_frames`` on them: every corner once to build
-the field tiles (steady state), then ``--reps`` passes with the pair-geometry cache cleared
-before each corner (new star fields, as every visit on the sky).  Prints the median for the
-4-pair corners and a machine reference (bench_frames.machine_reference_ms).
+Renders ``--trials`` + ``--warm-trials`` corner frame pairs once (as bench_frames.py does,
+same seeds) into ``--cache`` (npz).  The ``--warm-trials`` frames (trials after the timed
+ones) are processed first, to build the field tiles a running node has after a few visits;
+then ``--reps`` passes over the ``--trials`` frames are timed, with the pair-geometry cache
+cleared before each corner.  Their stars are not those of the warm-up, so every pair is at
+a new star field, as every visit on the sky.  Prints the median for the 4-pair corners and
+a machine reference (bench_frames.machine_reference_ms).
 
 Two checkouts compared on the same frames, alternately (the machine's speed drifts):
 
@@ -36,14 +38,14 @@ from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
 from cwfs_ros.core.selection import estimate_corner_frames, load_selection_config  # noqa: E402
 
 
-def frames(cache: Path, trials: int, seed: int) -> list[dict[str, np.ndarray]]:
+def frames(cache: Path, trials: range, seed: int) -> list[dict[str, np.ndarray]]:
     """The trials' (intra, extra) frames, rendered on first use with bench_frames.py's
     scene (its default arguments)."""
     cache.mkdir(parents=True, exist_ok=True)
     halves = load_half_chips()["R00"]
     scene = bf.parser().parse_args(["--seed", str(seed)])
     out = []
-    for k in range(trials):
+    for k in trials:
         path = cache / f"trial{k:02d}.npz"
         if not path.exists():
             _, _, rendered = bf.render_trial(k, scene, halves)
@@ -58,17 +60,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=Path("out/bench_frames_cache"))
     ap.add_argument("--trials", type=int, default=12)
+    ap.add_argument("--warm-trials", type=int, default=12)
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--seed", type=int, default=20261126)
     ap.add_argument("--tag", default="")
     a = ap.parse_args()
-    data = frames(a.cache, a.trials, a.seed)
+    data = frames(a.cache, range(a.trials), a.seed)
+    warm_up = frames(a.cache, range(a.trials, a.trials + a.warm_trials), a.seed)
     settings = EstimatorSettings(solver="lsq")
     cfg = load_selection_config(solver="lsq", max_pairs=4)
     kw = dict(corner="R00", settings=settings, config=cfg)
     rows = []
     with threadpool_limits(1):
-        for d in data:  # field tiles built: the steady state of a running node
+        for d in warm_up:  # field tiles built: the steady state of a running node
             estimate_corner_frames(d["intra"], d["extra"], **kw)
         for _ in range(a.reps):
             for d in data:
