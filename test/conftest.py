@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -60,3 +61,28 @@ def wait_for(cond, timeout: float, what: str) -> None:
             return
         time.sleep(0.01)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def spin_thread(executor) -> threading.Thread:
+    """A daemon thread (not started) that spins ``executor`` and ends quietly when the test
+    shuts its context down.
+
+    rclpy reports a context shut down from another thread while the executor builds its wait
+    set as ``RCLError`` rather than ``ExternalShutdownException`` (the race
+    ``cwfs_ros.launch.run_nodes`` handles too); a bare ``Thread(target=executor.spin)`` then
+    ends with an unhandled-thread-exception warning.  An error while the context is still
+    up is a real failure and is raised.
+    """
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.executors import ExternalShutdownException
+
+    def run() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass
+        except RCLError:
+            if executor.context.ok():
+                raise
+
+    return threading.Thread(target=run, daemon=True)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 from cwfs_ros import bag as B
 from cwfs_ros.cli import main as cli_main
@@ -133,7 +133,7 @@ def test_record_round_trip(storage, ros_context, tmp_path):
     ex = MultiThreadedExecutor(context=ros_context)
     ex.add_node(node)
     ex.add_node(rec.node)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
     try:
         wait_for(lambda: len(rec.subscriptions) == 3 and all(
@@ -225,7 +225,7 @@ def test_recorder_adapts_to_a_best_effort_publisher(ros_context, tmp_path):
     node = rclpy.create_node("best_effort_camera", context=ros_context)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(rec.node)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
     try:
         pub = node.create_publisher(Image, topic, qos_profile_sensor_data)
@@ -314,7 +314,7 @@ def test_play_republishes_bytes_with_original_timing(rate, ros_context, tmp_path
                                        OUTPUT_QOS, raw=True)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(sub_node)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
 
     sent_at: list[float] = []
@@ -381,7 +381,7 @@ def test_cli_record_until_sigint_then_play(ros_domain, tmp_path):
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     ex = SingleThreadedExecutor(context=ctx)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     try:
         node = rclpy.create_node("cli_bag_test", context=ctx)
         pub = node.create_publisher(DofCorrection, "/aos/ofc/dof_correction", OUTPUT_QOS)

@@ -6,11 +6,9 @@ node on the same context, spun by a MultiThreadedExecutor in a thread.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -67,7 +65,7 @@ def make_system(ros_domain, **params):
     ex = MultiThreadedExecutor(num_threads=4, context=ctx)
     ex.add_node(node)
     ex.add_node(tester.node)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
     wait_for(lambda: tester.pub.get_subscription_count() > 0
              and all(node.pubs[k].get_subscription_count() > 0 for k in node.pubs)

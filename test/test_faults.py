@@ -14,13 +14,12 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -101,7 +100,7 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
     tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", dofs.append,
                                OUTPUT_QOS)
     tester.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
 
     def publish(stamp: int, keys) -> None:

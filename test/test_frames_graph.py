@@ -5,11 +5,9 @@ per-term uncertainty. Real DDS, one process, the test's own domain."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -45,7 +43,7 @@ def test_frames_are_selected_paired_and_combined(ros_context):
     ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
     for n in (cam, wf, tester):
         ex.add_node(n)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
     try:
         wait_for(lambda: wf.ready, 60, "warm-up")

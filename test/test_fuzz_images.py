@@ -8,13 +8,12 @@ bytes are never a valid wavefront; the node stays alive and answers every visit.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -193,7 +192,7 @@ def test_live_wavefront_node_answers_every_fuzzed_visit(ros_context):
                                OUTPUT_QOS)
     ex.add_node(wf)
     ex.add_node(tester)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
     extra = donuts()[1]
     counter = iter(range(1, 10_000))

@@ -6,8 +6,6 @@ serves one corner (R00) with one worker here, to keep the warm-up short.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 
@@ -33,7 +31,7 @@ T = 1_800_000_000_000_000_000
 SEC = 1_000_000_000
 
 
-from conftest import wait_for  # noqa: E402
+from conftest import spin_thread, wait_for  # noqa: E402
 
 
 def of(msgs, stamp):
@@ -44,7 +42,7 @@ def of(msgs, stamp):
 def spin(ros_context):
     """An executor spinning in a thread on the test's context; yields add(node)."""
     ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     nodes = []
 
     def add(node):

@@ -3,10 +3,8 @@ parameter (wavefront_node over real DDS, one corner, one worker)."""
 
 from __future__ import annotations
 
-import threading
-
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -43,7 +41,7 @@ def _system(ctx, reliability: str):
     tester.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
     ex.add_node(wf)
     ex.add_node(tester)
-    th = threading.Thread(target=ex.spin, daemon=True)
+    th = spin_thread(ex)
     th.start()
 
     def close():

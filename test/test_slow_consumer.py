@@ -16,13 +16,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -74,7 +73,7 @@ def test_slow_subscriber_does_not_delay_the_controller(ros_context, ros_domain, 
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ex.add_node(ofc)
     ex.add_node(fast)
-    thread = threading.Thread(target=ex.spin, daemon=True)
+    thread = spin_thread(ex)
     thread.start()
     try:
         wait_for(lambda: pub.get_subscription_count() > 0 and
