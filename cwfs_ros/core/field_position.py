@@ -36,6 +36,7 @@ from ..paths import config_dir
 from .errors import ConfigError
 from .images import Orientation
 from .instrument import Instrument, load_instrument
+from .mapping import _defocused_telescope
 
 __all__ = ["HalfChip", "FieldModel", "load_half_chips", "field_model"]
 
@@ -187,23 +188,6 @@ def _cubic_terms(u: np.ndarray, v: np.ndarray) -> np.ndarray:
                      u ** 3, u * u * v, u * v * v, v ** 3])
 
 
-@lru_cache(maxsize=4)
-def _design_optic(template: str, band: str):
-    import batoid  # lazily: only ray-traced instruments need it
-
-    try:
-        return batoid.Optic.fromYaml(template.format(band=band))
-    except Exception as exc:  # batoid raises several types for a missing file
-        raise ConfigError(f"cannot load batoid optic {template.format(band=band)!r}: {exc}"
-                          ) from exc
-
-
-def _defocused(optic, offset_mm: float):
-    det = optic["Detector"]
-    shift = det.coordSys.rot @ np.array([0.0, 0.0, offset_mm * 1e-3])
-    return optic.withGloballyShiftedOptic("Detector", shift)
-
-
 def _trace(optic, px: np.ndarray, py: np.ndarray, wl_m: float, thx_deg: float, thy_deg: float):
     import batoid
 
@@ -241,7 +225,7 @@ def field_model(inst: Instrument, band: str, field_deg: tuple[float, float],
         return FieldModel(tuple(map(float, field_deg)), ref, coeffs, (0.0, 0.0),
                           k / 1000.0 * 3600.0, 0.0)
     wl_m = inst.wavelength_nm(band, wavelength_nm) * 1e-9
-    optic = _defocused(_design_optic(inst.batoid_optic, band), float(detector_offset_mm))
+    optic = _defocused_telescope(inst.batoid_optic, band, float(detector_offset_mm) * 1e-3)
     # Field grid covering the frame: half-extent in degrees from the paraxial scale.
     deg_per_px = np.rad2deg(pix_m / inst.focal_length_m)
     hx, hy = 0.55 * cols * deg_per_px, 0.55 * rows * deg_per_px

@@ -164,9 +164,12 @@ def _batoid_telescope(template: str, band: str):
 
 @lru_cache(maxsize=16)
 def _defocused_telescope(template: str, band: str, detector_dz_m: float):
-    """The design with its detector moved by ``detector_dz_m`` along z (cached)."""
-    return _batoid_telescope(template, band).withGloballyShiftedOptic(
-        "Detector", [0.0, 0.0, detector_dz_m])
+    """The design with its detector moved by ``detector_dz_m`` along the detector's own axis
+    (intra negative; cached).  Shared with :mod:`.field_position`, whose pixel -> field
+    model must see the same defocused optic as the mapping."""
+    tel = _batoid_telescope(template, band)
+    shift = tel["Detector"].coordSys.rot @ np.array([0.0, 0.0, detector_dz_m])
+    return tel.withGloballyShiftedOptic("Detector", shift)
 
 
 def _trace_defocused(inst: Instrument, band: str, wavelength_nm: float,
