@@ -632,9 +632,9 @@ def _vignetting_in_tile(inst: Instrument, side: str, defocus_mm: float, x: np.nd
     The tile decides the points transmitted (or vignetted) at all of its nodes; the swept
     points in between are decided by their aperture edges, and only those within
     _EDGE_TRACE_M of an edge are traced (all of them when the tile has no edge model).  The
-    masks are those of the direct trace (test_geometry_speed; 200 random corner fields in
-    the README's check); a side costs ~0.3 ms instead of ~5 ms of tracing at the LSST
-    corners on the machine of README Frames.
+    masks are those of the direct trace (test_geometry_speed, and 190 random corner fields
+    in bench/bench_vignetting_tiles.py); a side costs ~0.3 ms instead of ~5 ms of tracing
+    at the LSST corners on the machine of README Frames.
     """
     transmitted = always.copy()
     if sweep.size == 0:
