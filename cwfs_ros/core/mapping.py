@@ -172,20 +172,29 @@ def _defocused_telescope(template: str, band: str, detector_dz_m: float):
     return tel.withGloballyShiftedOptic("Detector", shift)
 
 
-def _trace_defocused(inst: Instrument, band: str, wavelength_nm: float,
-                     field_deg: tuple[float, float], side: str, defocus_mm: float,
-                     x: np.ndarray, y: np.ndarray):
-    """Trace rays from reduced pupil points to the shifted detector. Returns hits in pixels."""
+def _stop_rays(inst: Instrument, band: str, wavelength_nm: float,
+               field_deg: tuple[float, float], side: str, defocus_mm: float,
+               x: np.ndarray, y: np.ndarray):
+    """``(telescope, rays)``: the defocused design of one side, and rays from the reduced
+    pupil points (x, y) at ``field_deg``, not yet traced."""
     import batoid
 
     dz = (-1.0 if side == "intra" else 1.0) * defocus_mm * 1e-3  # intra: detector before focus
     tel = _defocused_telescope(inst.batoid_optic, band, dz)
     big_r = tel.pupilSize / 2.0
-    thx, thy = np.deg2rad(field_deg[0]), np.deg2rad(field_deg[1])
-    xs = np.concatenate([[0.0], x]) * big_r
-    ys = np.concatenate([[0.0], y]) * big_r
-    rv = batoid.RayVector.fromStop(xs, ys, optic=tel, wavelength=wavelength_nm * 1e-9,
-                                   theta_x=thx, theta_y=thy)
+    rv = batoid.RayVector.fromStop(np.asarray(x) * big_r, np.asarray(y) * big_r, optic=tel,
+                                   wavelength=wavelength_nm * 1e-9,
+                                   theta_x=np.deg2rad(field_deg[0]),
+                                   theta_y=np.deg2rad(field_deg[1]))
+    return tel, rv
+
+
+def _trace_defocused(inst: Instrument, band: str, wavelength_nm: float,
+                     field_deg: tuple[float, float], side: str, defocus_mm: float,
+                     x: np.ndarray, y: np.ndarray):
+    """Trace rays from reduced pupil points to the shifted detector. Returns hits in pixels."""
+    tel, rv = _stop_rays(inst, band, wavelength_nm, field_deg, side, defocus_mm,
+                         np.concatenate([[0.0], x]), np.concatenate([[0.0], y]))
     out = tel.trace(rv)
     pix = inst.pixel_size_um * 1e-6
     hx = (out.x[1:] - out.x[0]) / pix  # relative to the chief ray
@@ -515,6 +524,15 @@ def _aperture(obscuration) -> tuple[float, float, float, float, float] | None:
     return None
 
 
+def _edge_margin(x: np.ndarray, y: np.ndarray, aperture: np.ndarray) -> np.ndarray:
+    """Signed distance [m] of rays at (x, y) inside the edge of ``aperture``
+    (``x0, y0, inner, outer, sign`` along its first axis, see :func:`_aperture`; broadcast
+    against x and y): positive where the ray passes."""
+    x0, y0, inner, outer, sign = aperture
+    rho = np.hypot(x - x0, y - y0)
+    return sign * np.minimum(outer - rho, rho - inner)
+
+
 def _interfaces(optic):
     """The interfaces a trace passes, in order (CompoundOptic.trace's recursion)."""
     import batoid
@@ -549,9 +567,7 @@ class _ApertureEdges:
     def margins(self, mono: np.ndarray) -> np.ndarray:
         """(e,) signed distance [m] of each entry's ray inside its aperture's edge."""
         pos = self.centre + np.tensordot(mono[1:], self.variation, axes=1)
-        x0, y0, inner, outer, sign = self.aperture
-        rho = np.hypot(pos[0] - x0, pos[1] - y0)
-        return sign * np.minimum(outer - rho, rho - inner)
+        return _edge_margin(pos[0], pos[1], self.aperture)
 
     def transmitted(self, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per swept point at the field of ``mono``: transmitted, and too close to an edge
@@ -573,19 +589,13 @@ def _aperture_edges(inst: Instrument, side: str, defocus_mm: float, xs: np.ndarr
     circle or annulus, a ray fails at a node, the fit leaves more than 1e-9 m at the nodes,
     or the edges do not reproduce the traced masks ``node_masks`` (n_nodes, n) exactly.
     """
-    import batoid
-
-    dz = (-1.0 if side == "intra" else 1.0) * defocus_mm * 1e-3
-    tel = _defocused_telescope(inst.batoid_optic, band, dz)
-    stops = [(item, _aperture(item.obscuration)) for item in _interfaces(tel)]
+    rays = [_stop_rays(inst, band, wavelength_nm, node, side, defocus_mm, xs, ys)
+            for node in nodes]
+    stops = [(item, _aperture(item.obscuration)) for item in _interfaces(rays[0][0])]
     if any(ap is None for item, ap in stops if item.obscuration is not None):
         return None
-    big_r = tel.pupilSize / 2.0
     pos = []
-    for node in nodes:
-        rv = batoid.RayVector.fromStop(xs * big_r, ys * big_r, optic=tel,
-                                       wavelength=wavelength_nm * 1e-9,
-                                       theta_x=np.deg2rad(node[0]), theta_y=np.deg2rad(node[1]))
+    for _, rv in rays:
         at = []
         for item, ap in stops:
             item.trace(rv)  # the interaction, then the obscuration, as in tel.trace
@@ -604,9 +614,7 @@ def _aperture_edges(inst: Instrument, side: str, defocus_mm: float, xs: np.ndarr
 
     def margin(p: np.ndarray, a: np.ndarray) -> np.ndarray:
         """Margins of positions p (..., m, 2, n) inside apertures a (5, m): (..., m, n)."""
-        x0, y0, inner, outer, sign = (v[:, None] for v in a)
-        rho = np.hypot(p[..., 0, :] - x0, p[..., 1, :] - y0)
-        return sign * np.minimum(outer - rho, rho - inner)
+        return _edge_margin(p[..., 0, :], p[..., 1, :], a[:, :, None])
 
     if not np.array_equal((margin(pos, aps) > 0).all(axis=1), node_masks):
         return None
