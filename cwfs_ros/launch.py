@@ -49,6 +49,7 @@ __all__ = [
     "ros_arguments",
     "run_node_main",
     "run_nodes",
+    "spin_until_shutdown",
 ]
 
 PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
@@ -122,6 +123,26 @@ def load_node_class(name: str) -> type:
         raise LaunchError(f"{module} does not define {cls}, the class of {name}") from None
 
 
+def spin_until_shutdown(executor) -> None:
+    """``executor.spin()``, returning when its context is shut down from another thread.
+
+    rclpy reports that as ``ExternalShutdownException``, or, when the shutdown lands while
+    the executor builds its wait set, as ``RCLError`` (seen in CI, 2026-12-01): both are the
+    same clean end.  An ``RCLError`` while the context is still up is a real failure and is
+    raised.
+    """
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.executors import ExternalShutdownException
+
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+    except RCLError:
+        if executor.context.ok():
+            raise
+
+
 def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
               ros_args: Sequence[str] = (), context=None, domain_id: int | None = None,
               threads: int = 0, on_ready=None) -> int:
@@ -154,8 +175,7 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
         return 2
 
     import rclpy
-    from rclpy._rclpy_pybind11 import RCLError
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import MultiThreadedExecutor
 
     ctx = context
     try:
@@ -191,15 +211,8 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
             executor.add_node(n)
         if on_ready is not None:
             on_ready(nodes, executor)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        code = 0
-    except RCLError:
-        # A context shut down from another thread (the demo, a test) while the executor was
-        # building its wait set is reported this way rather than as
-        # ExternalShutdownException (seen once in CI, 2026-12-01): the same clean exit.
-        if executor is None or ctx.ok():
-            raise
+        spin_until_shutdown(executor)
+    except KeyboardInterrupt:
         code = 0
     finally:
         if executor is not None:

@@ -64,25 +64,10 @@ def wait_for(cond, timeout: float, what: str) -> None:
 
 
 def spin_thread(executor) -> threading.Thread:
-    """A daemon thread (not started) that spins ``executor`` and ends quietly when the test
-    shuts its context down.
+    """A daemon thread (not started) spinning ``executor`` until the test shuts its context
+    down (:func:`cwfs_ros.launch.spin_until_shutdown`: a bare
+    ``Thread(target=executor.spin)`` ends with an unhandled-thread-exception warning when the
+    shutdown races the executor's wait set)."""
+    from cwfs_ros.launch import spin_until_shutdown
 
-    rclpy reports a context shut down from another thread while the executor builds its wait
-    set as ``RCLError`` rather than ``ExternalShutdownException`` (the race
-    ``cwfs_ros.launch.run_nodes`` handles too); a bare ``Thread(target=executor.spin)`` then
-    ends with an unhandled-thread-exception warning.  An error while the context is still
-    up is a real failure and is raised.
-    """
-    from rclpy._rclpy_pybind11 import RCLError
-    from rclpy.executors import ExternalShutdownException
-
-    def run() -> None:
-        try:
-            executor.spin()
-        except ExternalShutdownException:
-            pass
-        except RCLError:
-            if executor.context.ok():
-                raise
-
-    return threading.Thread(target=run, daemon=True)
+    return threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
