@@ -64,10 +64,13 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--seed", type=int, default=20261126)
     ap.add_argument("--tag", default="")
+    ap.add_argument("--estimator-seeing", type=float, default=0.0,
+                    help="seeing (arcsec FWHM) the estimator is told: > 0 adds the blur "
+                         "reference of each new pair geometry (cwfs_ros.core.blur)")
     a = ap.parse_args()
     data = frames(a.cache, range(a.trials), a.seed)
     warm_up = frames(a.cache, range(a.trials, a.trials + a.warm_trials), a.seed)
-    settings = EstimatorSettings(solver="lsq")
+    settings = EstimatorSettings(solver="lsq", seeing_fwhm_arcsec=a.estimator_seeing)
     cfg = load_selection_config(solver="lsq", max_pairs=4)
     kw = dict(corner="R00", settings=settings, config=cfg)
     rows = []

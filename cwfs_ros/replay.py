@@ -70,6 +70,7 @@ N_DOF = 50
 # gets for a parameter no YAML file sets). Only the ones that change the numbers are listed.
 WAVEFRONT_DEFAULTS: dict[str, Any] = {
     "instrument": "lsst", "band": "r", "solver": "exp", "outer_iterations": 0, "pad_px": 0,
+    "seeing_fwhm_arcsec": 0.0,
     "pairing_tolerance_s": 0.001, "visit_timeout_s": 2.0, "sensor_config": "",
     **{f"sensors.{c}.{s}.{k}": v for c in _CORNERS for s in _SIDES
        for k, v in (("rot90", 0), ("flip", "none"))},

@@ -8,7 +8,7 @@ import pytest
 from cwfs_ros.core.control import load_dof_spec
 from cwfs_ros.sim import load_corner_geometry, perturbed_telescope
 from cwfs_ros.sim.perturbation import RIGID_SCALE, random_perturbation, true_error_of_state_nm
-from cwfs_ros.sim.visit import DonutSpec, make_render_pool, render_visit
+from cwfs_ros.sim.visit import DonutSpec, FrameSpec, make_render_pool, render_frames, render_visit
 
 
 def _specs() -> list[DonutSpec]:
@@ -36,6 +36,31 @@ def test_render_visit_does_not_depend_on_the_number_of_workers():
     # Photons are conserved to Poisson accuracy (sky subtracted, ~8 % vignetted at a corner).
     total = float(serial[("R04", "intra")].sum())
     assert 0.8 * 2e4 < total < 1.02 * 2e4
+
+
+def test_frames_are_blurred_by_the_seeing():
+    """The seeing reaches frames (it once reached only stamps).
+
+    With 1 arcsec FWHM (sigma = 2.12 px at 0.2 arcsec/px) light crosses the donut's edges.
+    The share found beyond the sharp donut's pixels grown by one (its edges ~1-1.5 px out)
+    is, per unit edge length, sigma (phi(t) - t (1 - Phi(t))) with t = d / sigma: 0.29 px
+    at d = 1.5 px and 0.42 px at 1 px; times the edge length (2 pi (61 + 37) px) over the
+    donut's area (pi (61^2 - 37^2) px^2), 2.4-3.5 %.  Without seeing, none is there.
+    """
+    g = load_corner_geometry()["R04"]
+    spec = FrameSpec(("R04", "intra"), g.intra_field_deg, g.intra_offset_mm, (300, 300),
+                     (1, 1), (2e5, 2e5), False, False, 5)
+    tel = perturbed_telescope(np.zeros(50), "r")
+    kw = dict(band="r", wavelength_nm=622.0, sky_per_pixel=0.0)
+    sharp = render_frames(tel, [spec], **kw)[spec.key]
+    blurred = render_frames(tel, [spec], seeing_fwhm_arcsec=1.0, **kw)[spec.key]
+    assert [s.x for s in sharp.stars] == [s.x for s in blurred.stars]  # same star field
+    # The sharp donut's own pixels, slightly grown: ray-traced light never leaves them.
+    from scipy.ndimage import binary_dilation
+    lit = binary_dilation(sharp.image > 0, iterations=1)
+    assert sharp.image[~lit].sum() == 0.0
+    outside = blurred.image[~lit].sum() / blurred.image.sum()
+    assert 0.018 < outside < 0.045
 
 
 def test_render_pool_of_one_is_in_thread():

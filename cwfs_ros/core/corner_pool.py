@@ -61,6 +61,8 @@ class EstimatorSettings:
         outer_iterations: outer-loop iterations; 0 means the ``config/algorithm.yaml`` value.
         pad_px: pixels of background padding added around each stamp before estimation
             (see :func:`cwfs_ros.core.images.pad_stamp`).
+        seeing_fwhm_arcsec: atmospheric seeing of the images (FWHM, arcsec), whose blur the
+            lsq solver takes out of the signal (:mod:`cwfs_ros.core.blur`).
     """
 
     instrument: str = "lsst"
@@ -68,6 +70,7 @@ class EstimatorSettings:
     solver: str = "exp"
     outer_iterations: int = 0
     pad_px: int = 0
+    seeing_fwhm_arcsec: float = 0.0
 
     @classmethod
     def from_params(cls, get: Callable[[str], Any]) -> EstimatorSettings:
@@ -78,10 +81,12 @@ class EstimatorSettings:
         """
         return cls(instrument=str(get("instrument")), band=str(get("band")),
                    solver=str(get("solver")), outer_iterations=int(get("outer_iterations")),
-                   pad_px=int(get("pad_px")))
+                   pad_px=int(get("pad_px")),
+                   seeing_fwhm_arcsec=float(get("seeing_fwhm_arcsec")))
 
     def estimator_kwargs(self) -> dict:
-        kw: dict = {"instrument": self.instrument, "band": self.band, "solver": self.solver}
+        kw: dict = {"instrument": self.instrument, "band": self.band, "solver": self.solver,
+                    "seeing_fwhm_arcsec": float(self.seeing_fwhm_arcsec)}
         if self.outer_iterations > 0:
             kw["outer_iterations"] = int(self.outer_iterations)
         return kw
@@ -100,6 +105,9 @@ def validate_settings(settings: EstimatorSettings) -> None:
                                        if settings.outer_iterations > 0 else {}))
     if not 0 <= settings.pad_px <= 256:
         raise ConfigError(f"pad_px must be in 0..256, got {settings.pad_px}")
+    if not 0.0 <= settings.seeing_fwhm_arcsec <= 10.0:
+        raise ConfigError(f"seeing_fwhm_arcsec must be in [0, 10], got "
+                          f"{settings.seeing_fwhm_arcsec}")
 
 
 @dataclass(frozen=True)

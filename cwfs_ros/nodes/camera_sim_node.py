@@ -184,7 +184,8 @@ class CameraSimNode(Node):
             fp_range=(0.0, 1000.0), **ro))
         d("npix", 160, describe("Stamp side [px].", int_range=(16, 4096), **ro))
         d("seeing_fwhm_arcsec", 0.0, describe(
-            "Gaussian seeing blur FWHM [arcsec]; 0 = none.", fp_range=(0.0, 10.0), **ro))
+            "Gaussian seeing blur FWHM [arcsec] of every donut, stamps and frames; 0 = none.",
+            fp_range=(0.0, 10.0), **ro))
         d("read_noise_e", 0.0, describe(
             "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
         d("frames", False, describe(
@@ -386,7 +387,9 @@ class CameraSimNode(Node):
                                        int(self._rng.integers(2**62))))
         frames = render_frames(tel, specs, band=self.band, wavelength_nm=self.wavelength_nm,
                                sky_per_pixel=float(p("sky_per_pixel")),
-                               read_noise_e=float(p("read_noise_e")), executor=self._pool)
+                               read_noise_e=float(p("read_noise_e")),
+                               seeing_fwhm_arcsec=float(p("seeing_fwhm_arcsec")),
+                               executor=self._pool)
         with self._lock:
             self.last_frame_stars = {k: len(f.stars) for k, f in frames.items()}
         return {k: f.image for k, f in frames.items()}

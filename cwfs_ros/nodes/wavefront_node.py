@@ -82,7 +82,8 @@ from .convert import (
 __all__ = ["WavefrontNode", "main"]
 
 NODE_NAME = "wavefront_node"
-_SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px")
+_SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px",
+                    "seeing_fwhm_arcsec")
 _SOLVERS = ("exp", "fft", "lsq")
 _INPUT_MODES = ("auto", "stamps", "frames")
 
@@ -198,6 +199,10 @@ class WavefrontNode(Node):
             "median), for stamps cut so tight that the estimator rejects the donut as touching "
             "the edge; 0 = none (160 px corner stamps need none).",
             int_range=(0, 256)))
+        d("seeing_fwhm_arcsec", 0.0, describe(
+            "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
+            "lsq solver takes the blur's edge signal out of the difference image (README, "
+            "Accuracy); 0 = not given: no such correction.", fp_range=(0.0, 10.0)))
         d("pairing_tolerance_s", 0.001, describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
             fp_range=(0.0, 10.0)))

@@ -209,6 +209,7 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
                  wavelength_nm: float = 622.0, sky_per_pixel: float = 50.0,
                  read_noise_e: float = 0.0, full_well_e: float | None = None,
                  render_px: int = 200, pixel_um: float = 10.0,
+                 seeing_fwhm_arcsec: float = 0.0,
                  rng: np.random.Generator | None = None) -> SimulatedFrame:
     """Render a half-chip frame with the given stars.
 
@@ -225,6 +226,9 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
         full_well_e: pixels are clipped at this level (saturation), if given.
         render_px: side of the region each donut is rendered into (px).
         pixel_um: pixel pitch.
+        seeing_fwhm_arcsec: FWHM of a Gaussian atmospheric blur of every star (each photon
+            is displaced at random, as in :func:`~cwfs_ros.sim.render.render_donut`); 0 =
+            none, which leaves the frame's random stream as it was without seeing.
         rng: random generator.
 
     Returns:
@@ -249,7 +253,8 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
         if n > 0:
             st = render_donut(telescope, fld, detector_offset_mm, wavelength_nm=wavelength_nm,
                               npix=render_px, pixel_um=pixel_um, n_photons=n, n_rays=n,
-                              offset_px=off, rng=rng, centre="chief", poisson=False)
+                              offset_px=off, rng=rng, centre="chief", poisson=False,
+                              seeing_fwhm_arcsec=seeing_fwhm_arcsec)
             ya, yb = max(y0, 0), min(y0 + render_px, rows)
             xa, xb = max(x0, 0), min(x0 + render_px, cols)
             if ya < yb and xa < xb:

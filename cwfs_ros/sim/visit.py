@@ -131,7 +131,7 @@ class FrameSpec:
 
 
 def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelength_nm: float,
-                  sky_per_pixel: float, read_noise_e: float):
+                  sky_per_pixel: float, read_noise_e: float, seeing_fwhm_arcsec: float):
     from .frames import random_stars, render_frame
 
     rng = np.random.default_rng(spec.seed)
@@ -141,15 +141,18 @@ def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelengt
     return render_frame(telescope, stars, field_ref_deg=spec.field_ref_deg,
                         detector_offset_mm=spec.detector_offset_mm, shape_px=spec.shape_px,
                         band=band, wavelength_nm=wavelength_nm, sky_per_pixel=sky_per_pixel,
-                        read_noise_e=read_noise_e, rng=rng)
+                        read_noise_e=read_noise_e, seeing_fwhm_arcsec=seeing_fwhm_arcsec,
+                        rng=rng)
 
 
 def render_frames(telescope: batoid.Optic, specs: Sequence[FrameSpec], *, band: str,
                   wavelength_nm: float, sky_per_pixel: float = 50.0, read_noise_e: float = 0.0,
+                  seeing_fwhm_arcsec: float = 0.0,
                   executor: Executor | None = None) -> dict[Hashable, object]:
     """Render every frame of ``specs`` (:class:`cwfs_ros.sim.frames.SimulatedFrame`, sky
     included: donut selection estimates and subtracts it), in parallel when given a pool."""
-    args = (band, float(wavelength_nm), float(sky_per_pixel), float(read_noise_e))
+    args = (band, float(wavelength_nm), float(sky_per_pixel), float(read_noise_e),
+            float(seeing_fwhm_arcsec))
     if executor is None:
         return {s.key: _render_frame(telescope, s, *args) for s in specs}
     futures = {s.key: executor.submit(_render_frame, telescope, s, *args) for s in specs}
