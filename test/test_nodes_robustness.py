@@ -149,6 +149,7 @@ def test_wavefront_node_never_crashes_on_bad_input(ros_context, spin):
         ("corners", ["R04"], "read-only"),
         ("sensors.R00.intra.flip", "diagonal", "flip"),
         ("visit_timeout_s", "soon", "type"),
+        ("seeing_fwhm_arcsec", -0.5, "out of range"),
     ]:
         (res,) = wf.set_parameters([Parameter(name, value=value)])
         assert not res.successful and words in res.reason, (name, res.reason)
@@ -157,6 +158,9 @@ def test_wavefront_node_never_crashes_on_bad_input(ros_context, spin):
     wait_for(lambda: wf.ready, 30, "re-warm after the band change")
     (res,) = wf.set_parameters([Parameter("sensors.R00.extra.rot90", value=2)])
     assert res.successful and wf.orientations[("R00", "extra")].rot90 == 2
+    # The seeing reaches the estimator's settings, without a re-warm (the node stays ready).
+    (res,) = wf.set_parameters([Parameter("seeing_fwhm_arcsec", value=0.8)])
+    assert res.successful and wf.settings.seeing_fwhm_arcsec == 0.8 and wf.ready
 
 
 def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):

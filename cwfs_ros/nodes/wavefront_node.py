@@ -301,8 +301,15 @@ class WavefrontNode(Node):
                         self.orientations[(c, s)] = self._orientation_from(c, s, self._param)
             if names & set(_SETTINGS_PARAMS):
                 self.settings = self._settings_from(self._param)
-                self.get_logger().info(f"estimator settings now {self.settings}; re-warming")
-                self._start_warm_up()
+                if names & (set(_SETTINGS_PARAMS) - {"seeing_fwhm_arcsec"}):
+                    self.get_logger().info(f"estimator settings now {self.settings}; "
+                                           "re-warming")
+                    self._start_warm_up()
+                else:
+                    # The seeing may follow the seeing monitor visit by visit: the workers'
+                    # caches stay valid (the blur reference is cached per seeing).
+                    self.get_logger().info(f"seeing now {self.settings.seeing_fwhm_arcsec:g}"
+                                           " arcsec FWHM")
 
     # ------------------------------------------------------------------ warm-up
     def _start_warm_up(self) -> None:
