@@ -216,6 +216,9 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
                    help="photons per donut (default: %(default)g)")
     p.add_argument("--render-seed", type=int, default=7,
                    help="seed of the image noise and donut offsets (default: %(default)s)")
+    p.add_argument("--seeing", type=_finite_float, default=0.0, metavar="ARCSEC",
+                   help="atmospheric seeing (FWHM) of the simulated donuts, which the "
+                        "estimator is told too, as by a seeing monitor (default: none)")
     p.add_argument("--params", action="append", default=[], metavar="FILE",
                    help="ROS parameter YAML overlaid on config/params.yaml and "
                         "config/sim.yaml (repeatable)")
@@ -246,6 +249,8 @@ def _run_demo(args: argparse.Namespace) -> int:
         raise CliError(f"--wavefront-error must be > 0 nm, got {args.wavefront_error:g}")
     if not args.photons >= 1e3:
         raise CliError(f"--photons must be >= 1000, got {args.photons:g}")
+    if not 0.0 <= args.seeing <= 10.0:
+        raise CliError(f"--seeing must be in [0, 10] arcsec, got {args.seeing:g}")
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         raise CliError(f"--domain-id must be in 0..232, got {args.domain_id}")
     for f in args.params:
@@ -256,13 +261,17 @@ def _run_demo(args: argparse.Namespace) -> int:
     print(f"cwfs-ros demo: {args.perturbation} perturbation (seed {args.seed}) of "
           f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
           f"{args.photons:g} photons per donut"
+          + (f", seeing {args.seeing:g} arcsec" if args.seeing > 0 else "")
           + ("" if args.visible else "; DDS discovery off (this process only)"), flush=True)
+    # One override reaches both nodes that declare it: the camera renders that seeing and
+    # the wavefront node is told it.
+    seeing_args = ("-p", f"seeing_fwhm_arcsec:={args.seeing:g}") if args.seeing > 0 else ()
     config = LoopConfig(
         visits=args.visits, initial_dof=dof, n_photons=args.photons,
         render_seed=args.render_seed,
         params_files=[sim_params_file(), *args.params], visible=args.visible,
         domain_id=args.domain_id,
-        ros_args=() if args.verbose else ("--log-level", "warn"))
+        ros_args=(() if args.verbose else ("--log-level", "warn")) + seeing_args)
     header = (f"{'visit':>5}  {'true WFE':>9}  {'measured':>9}  {'est. err':>8}  "
               f"{'correction':>10}  {'render':>7}  {'estimate':>8}  {'solve':>6}")
     bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
