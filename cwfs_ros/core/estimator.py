@@ -260,7 +260,7 @@ class PairGeometry:
     def blur_reference(self, blur_px: float, stamp_shape: tuple[int, int]) -> np.ndarray:
         """The edge signal of an image blur of ``blur_px`` (sigma beyond the pixels) in the
         weighted difference image, for stamps of ``stamp_shape`` (:func:`.blur.blur_reference`;
-        cached, ~10 ms to build)."""
+        cached; 10-17 ms to build, README Frames)."""
         key = (round(float(blur_px), 4), tuple(stamp_shape))
         ref = self._blur_refs.get(key)
         if ref is None:
