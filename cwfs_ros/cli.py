@@ -136,6 +136,9 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
                    help="TIE solver (default: %(default)s)")
     p.add_argument("--iterations", type=_positive_int, metavar="N",
                    help="outer iterations (default: config/algorithm.yaml)")
+    p.add_argument("--seeing", type=_finite_float, default=0.0, metavar="ARCSEC",
+                   help="seeing FWHM of the images: lsq takes the blur's edge signal out "
+                        "(README, Accuracy, Seeing; default: none given)")
     p.add_argument("--json", action="store_true",
                    help="print the result as JSON (nothing else on stdout)")
     p.add_argument("--plot", metavar="PNG", type=Path,
@@ -172,7 +175,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         intra, extra,
         field_intra_deg=tuple(args.field_intra), field_extra_deg=tuple(args.field_extra),
         instrument=inst, band=args.band or inst.default_band, wavelength_nm=args.wavelength,
-        defocal_offset_mm=args.defocal_offset, solver=args.solver, **overrides,
+        defocal_offset_mm=args.defocal_offset, solver=args.solver,
+        seeing_fwhm_arcsec=args.seeing, **overrides,
     )
     if args.plot is not None:
         from .plotting import plot_result

@@ -126,6 +126,13 @@ def test_bad_config_is_a_clean_error() -> None:
     assert "unknown instrument" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_bad_seeing_is_a_clean_error() -> None:
+    proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--seeing", "-1")
+    assert proc.returncode == 2
+    assert "seeing_fwhm_arcsec must be in [0, 10]" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_bogus_solver_rejected_by_argparse() -> None:
     proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--solver", "bogus")
     assert proc.returncode == 2
@@ -198,3 +205,5 @@ def test_demo_rejects_bad_arguments(tmp_path: Path) -> None:
     assert "--wavefront-error must be > 0" in proc.stderr
     proc = run_cli("demo", "--out", tmp_path, "--params", tmp_path / "missing.yaml")
     assert proc.returncode == 2 and "no such file" in proc.stderr
+    proc = run_cli("demo", "--out", tmp_path, "--seeing", "20")
+    assert proc.returncode == 2 and "--seeing must be in [0, 10]" in proc.stderr
