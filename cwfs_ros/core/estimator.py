@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, fields
-from functools import cached_property, lru_cache
+from functools import cached_property, lru_cache, partial
 from typing import Any
 
 import numpy as np
@@ -48,7 +48,7 @@ from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
 from .errors import ConfigError, ShapeMismatchError
 from .instrument import Instrument, load_instrument
-from .mapping import ImageMapping, design_zernikes_tiled, nominal_mapping
+from .mapping import ImageMapping, design_zernikes_tiled, nominal_mapping, pupil_transmission
 from .tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from .zernike import ZernikeBasis, zernike_basis
 
@@ -249,6 +249,9 @@ class PairGeometry:
     jac_mean_extra: np.ndarray | None = None
     footprint_inputs: tuple | None = field(default=None, repr=False)
     obscuration: float = 0.0
+    # Each side's f(x, y) -> transmitted, for pupil points off the grid (mapping
+    # .pupil_transmission at the star's field): the blur reference's exact vignetting edges.
+    transmissions: tuple = field(default=(None, None), repr=False, compare=False)
     # blur_reference() results by (blur, stamp shape): each pair's geometry meets one seeing
     # and one stamp size per visit.
     _blur_refs: dict = field(default_factory=dict, repr=False, compare=False)
@@ -260,14 +263,15 @@ class PairGeometry:
     def blur_reference(self, blur_px: float, stamp_shape: tuple[int, int]) -> np.ndarray:
         """The edge signal of an image blur of ``blur_px`` (sigma beyond the pixels) in the
         weighted difference image, for stamps of ``stamp_shape`` (:func:`.blur.blur_reference`;
-        cached; 10-17 ms to build, README Frames)."""
+        cached; ~50 ms to build, most of it tracing the rays at the vignetting edges)."""
         key = (round(float(blur_px), 4), tuple(stamp_shape))
         ref = self._blur_refs.get(key)
         if ref is None:
             if len(self._blur_refs) >= 4:
                 self._blur_refs.clear()
             ref = blur_reference((self.mapping_intra, self.mapping_extra), self.x, self.y,
-                                 self.spacing, self.obscuration, self.weight, key[1], key[0])
+                                 self.spacing, self.obscuration, self.weight, key[1], key[0],
+                                 self.transmissions, (self.shape, self.region))
             ref.setflags(write=False)
             self._blur_refs[key] = ref
         return ref
@@ -505,7 +509,11 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                         centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
                         mean_gradient(mask_ex), time.perf_counter() - t0, gram, feedback_l,
                         rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
-                        footprint_inputs, float(inst.obscuration))
+                        footprint_inputs, float(inst.obscuration),
+                        tuple(partial(pupil_transmission, inst, side, defocus_mm=defocus_mm,
+                                      band=band, wavelength_nm=wavelength_nm, field_deg=f)
+                              for side, f in (("intra", field_intra_deg),
+                                              ("extra", field_extra_deg))))
 
 
 # -- result -------------------------------------------------------------------------------

@@ -831,6 +831,27 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
                         c_px_per_nm=_c_px_per_nm(inst, side, defocus_mm), fit_rms_px=rms)
 
 
+def pupil_transmission(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *,
+                       defocus_mm: float, band: str | None = None,
+                       wavelength_nm: float | None = None,
+                       field_deg: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Whether the rays from reduced pupil points (x, y) reach the detector of one side:
+    the annulus, and the instrument's vignetting at ``field_deg`` (batoid: traced; poly10:
+    its circles).  For a few points off the pupil grid, e.g. near a vignetting edge
+    (:func:`cwfs_ros.core.blur.design_donut`)."""
+    x = np.asarray(x, dtype=float).ravel()
+    y = np.asarray(y, dtype=float).ravel()
+    inside = _annulus(inst, x, y)
+    if inst.mapping in ("paraxial", "fastbeam") or not x.size:
+        return inside
+    fld = (float(field_deg[0]), float(field_deg[1]))
+    if inst.mapping == "poly10":
+        return inside & _poly10(inst, side, defocus_mm, x, y, fld)[1]
+    band = band or inst.default_band
+    wl = inst.wavelength_nm(band, wavelength_nm)
+    return inside & _trace_defocused(inst, band, wl, fld, side, defocus_mm, x, y)[3]
+
+
 @lru_cache(maxsize=256)
 def design_zernikes_nm(inst: Instrument, band: str, wavelength_nm: float,
                        field_deg: tuple[float, float], jmax: int) -> np.ndarray:
