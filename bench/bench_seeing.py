@@ -70,7 +70,8 @@ def main() -> None:
     ap.add_argument("--seeing", default="0,0.4,0.7,1.0", help="FWHM values, arcsec")
     ap.add_argument("--variants", default="exp,lsq-,lsq",
                     help="solvers; a trailing '-' turns the blur reference off (lsq- is lsq "
-                         "as before it; README, Accuracy)")
+                         "as before it; README, Accuracy), a trailing '+' turns it on "
+                         "(exp+)")
     ap.add_argument("--photons", type=float, default=4e6, help="rays of the quasi render")
     a = ap.parse_args()
     seeing = [float(s) for s in a.seeing.split(",")]
@@ -100,9 +101,10 @@ def main() -> None:
                                             mode="constant") if fwhm > 0 else im
                             for im, s in zip(sharp, scales, strict=True)]
                     for solver in solvers:
-                        kw = {"blur_reference": False} if solver.endswith("-") else {}
+                        kw = ({"blur_reference": solver.endswith("+")}
+                              if solver[-1] in "+-" else {})
                         r = estimate_wavefront(*imgs, field_intra_deg=fi, field_extra_deg=fe,
-                                               solver=solver.rstrip("-"), wavelength_nm=WL,
+                                               solver=solver.rstrip("+-"), wavelength_nm=WL,
                                                seeing_fwhm_arcsec=fwhm, **kw)
                         err = (r.zernikes_nm - r.intrinsic_nm) - truth
                         rows.setdefault((solver, geo, fwhm), []).append(err)

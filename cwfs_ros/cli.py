@@ -137,7 +137,7 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=_positive_int, metavar="N",
                    help="outer iterations (default: config/algorithm.yaml)")
     p.add_argument("--seeing", type=_finite_float, default=0.0, metavar="ARCSEC",
-                   help="seeing FWHM of the images: lsq takes the blur's edge signal out "
+                   help="seeing FWHM of the images: lsq and exp take the blur's edge signal out "
                         "(README, Accuracy, Seeing; default: none given)")
     p.add_argument("--json", action="store_true",
                    help="print the result as JSON (nothing else on stdout)")

@@ -62,7 +62,7 @@ class EstimatorSettings:
         pad_px: pixels of background padding added around each stamp before estimation
             (see :func:`cwfs_ros.core.images.pad_stamp`).
         seeing_fwhm_arcsec: atmospheric seeing of the images (FWHM, arcsec), whose blur the
-            lsq solver takes out of the signal (:mod:`cwfs_ros.core.blur`).
+            lsq and exp solvers take out of the signal (:mod:`cwfs_ros.core.blur`).
     """
 
     instrument: str = "lsst"

@@ -632,7 +632,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             images agree (README, Frames).
         seeing_fwhm_arcsec: atmospheric seeing (FWHM, arcsec) of the images, e.g. from the
             observatory's seeing monitor.  Where the solver's ``blur_reference`` is on
-            (lsq), the edge signal of the images' blur (the seeing, the pixels and the
+            (exp, lsq), the edge signal of the images' blur (the seeing, the pixels and the
             smoothing) is predicted and taken out of the difference image (:mod:`.blur`;
             README, Accuracy).  0: no seeing given, no such correction.
         **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,

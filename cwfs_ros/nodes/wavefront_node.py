@@ -201,7 +201,7 @@ class WavefrontNode(Node):
             int_range=(0, 256)))
         d("seeing_fwhm_arcsec", 0.0, describe(
             "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
-            "lsq solver takes the blur's edge signal out of the difference image (README, "
+            "lsq and exp solvers take the blur's edge signal out of the difference image (README, "
             "Accuracy); 0 = not given: no such correction.", fp_range=(0.0, 10.0)))
         d("pairing_tolerance_s", 0.001, describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
