@@ -14,8 +14,8 @@ Each telescope is rendered noise-free: quasi-random pupil rays (``sampling="quas
 the noise-free image. It is deterministic, so every figure is a bias and not a noise draw.
 The renderer's own seeing option kicks each ray at random, which adds ray noise. The plate
 scale comes from batoid at each field (``plate_scale_um_per_arcsec``). The telescopes are
-the nominal design and ``--trials`` random M2/camera hexapod perturbations (as
-bench_corners.py: 300-900 nm at the corner).
+the nominal design and ``--trials`` random M2/camera hexapod perturbations (drawn as
+bench_frames.py draws them: 300-900 nm at the corner).
 
 Prints the RMS error over Z4..Z22 and the worst single term (nm) per solver, geometry and
 seeing, as the median over the telescopes.
@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 import warnings
+from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -37,7 +39,11 @@ import numpy as np  # noqa: E402
 from scipy.ndimage import gaussian_filter  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_frames as bf  # noqa: E402
+
 from cwfs_ros.core import estimate_wavefront  # noqa: E402
+from cwfs_ros.core.blur import FWHM_PER_SIGMA  # noqa: E402
 from cwfs_ros.sim.render import (  # noqa: E402
     corner_fields,
     plate_scale_um_per_arcsec,
@@ -46,21 +52,15 @@ from cwfs_ros.sim.render import (  # noqa: E402
 )
 from cwfs_ros.sim.telescope import perturbed_telescope  # noqa: E402
 
-SCALE = np.array([8, 150, 150, 0.005, 0.005, 8, 150, 150, 0.005, 0.005])
-WL = 622.0
+WL = bf.WL
 PIXEL_UM = 10.0
-FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
 def telescopes(n: int, rng: np.random.Generator) -> list[tuple[str, object]]:
-    out = [("nominal", perturbed_telescope(np.zeros(50), band="r"))]
+    """The design and ``n`` perturbed telescopes drawn as bench_frames.py draws them."""
     mid = corner_fields()["R00"]["mid"]
-    while len(out) < n + 1:
-        dof = np.zeros(50)
-        dof[:10] = rng.normal(0, 1, 10) * SCALE
-        tel = perturbed_telescope(dof, band="r")
-        if 300 <= np.sqrt(np.sum(true_zernikes_nm(tel, mid, wavelength_nm=WL) ** 2)) <= 900:
-            out.append((f"perturbed {len(out)}", tel))
+    out = [("nominal", perturbed_telescope(np.zeros(50), band="r"))]
+    out += [(f"perturbed {k + 1}", bf.draw_telescope(rng, mid)[0]) for k in range(n)]
     return out
 
 

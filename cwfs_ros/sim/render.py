@@ -37,6 +37,7 @@ import batoid
 import numpy as np
 import yaml
 
+from ..core.blur import FWHM_PER_SIGMA
 from ._paths import config_dir
 from .sampling import annulus_samples
 from .telescope import defocused
@@ -53,7 +54,6 @@ __all__ = [
     "true_zernikes_nm",
 ]
 
-_FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _ARCSEC = np.pi / 180.0 / 3600.0  # radians per arcsec
 _CHUNK = 1_000_000  # rays traced per batoid call (bounds memory: ~100 B per ray)
 
@@ -308,7 +308,7 @@ def render_donut(
     ys = (y - y0) / pix_m
     if seeing_fwhm_arcsec > 0:
         scale = plate_scale_um_per_arcsec(telescope, field_deg, wavelength_nm=wavelength_nm)
-        sigma_px = seeing_fwhm_arcsec / _FWHM_PER_SIGMA * scale / float(pixel_um)
+        sigma_px = seeing_fwhm_arcsec / FWHM_PER_SIGMA * scale / float(pixel_um)
         xs = xs + rng.normal(0.0, sigma_px, xs.size)
         ys = ys + rng.normal(0.0, sigma_px, ys.size)
     xs += 0.5 * npix + float(offset_px[0])
