@@ -78,6 +78,46 @@ def test_design_donut_vignetting_edges_follow_the_traced_rays():
     assert kept == pytest.approx(traced, abs=5e-4)
 
 
+@pytest.mark.parametrize("corner, side, offset_deg", [("R00", "intra", (0.05, -0.04)),
+                                                     ("R44", "extra", (-0.03, 0.06))])
+def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, offset_deg):
+    """The blur reference asks which sub-points of the cells on a vignetting edge reach the
+    detector.  The answer (from ray positions fitted over the pupil, mapping._PupilApertures)
+    must be that of batoid's own trace of those rays through its LSST model, point for
+    point, there and at random pupil points."""
+    import batoid
+
+    from cwfs_ros.core.blur import _boundary
+    from cwfs_ros.core.mapping import pupil_transmission
+
+    inst = load_instrument("lsst")
+    field = tuple(np.add(corner_fields()[corner][side], offset_deg))
+    g = pair_geometry(inst, "r", WL, field, field, 1.5, load_algorithm("lsq"))
+    m = g.mapping_intra if side == "intra" else g.mapping_extra
+    r = np.hypot(g.x, g.y)
+    annulus = (r <= 1.0) & (r >= inst.obscuration)
+    cells = np.flatnonzero(_boundary((g.shape, g.region), m.transmitted,
+                                     annulus & ~m.transmitted))
+    assert cells.size > 200  # a corner field: long vignetting edges
+    offs = (np.arange(3) - 1.0) / 3.0 * g.spacing
+    dx, dy = (a.ravel() for a in np.meshgrid(offs, offs))
+    rng = np.random.default_rng(3)
+    x = np.concatenate([(g.x[cells, None] + dx).ravel(), rng.uniform(-1, 1, 2000)])
+    y = np.concatenate([(g.y[cells, None] + dy).ravel(), rng.uniform(-1, 1, 2000)])
+    got = pupil_transmission(inst, side, x, y, defocus_mm=1.5, band="r", wavelength_nm=WL,
+                             field_deg=field)
+    tel = batoid.Optic.fromYaml("LSST_r.yaml")
+    big_r = tel.pupilSize / 2.0
+    rays = tel.trace(batoid.RayVector.fromStop(x * big_r, y * big_r, optic=tel,
+                                               wavelength=WL * 1e-9,
+                                               theta_x=np.deg2rad(field[0]),
+                                               theta_y=np.deg2rad(field[1])))
+    r = np.hypot(x, y)
+    truth = ~rays.vignetted & ~rays.failed & (r <= 1.0) & (r >= inst.obscuration)
+    assert 0.05 < 1.0 - truth[:cells.size * 9].mean() < 0.95  # both states on the edges
+    assert np.array_equal(got, truth)
+
+
 @pytest.fixture(scope="module")
 def seeing_pair():
     """Noise-free design donuts at the R00 SW0 corner field, blurred by 1" of seeing."""
