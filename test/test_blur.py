@@ -78,13 +78,17 @@ def test_design_donut_vignetting_edges_follow_the_traced_rays():
     assert kept == pytest.approx(traced, abs=5e-4)
 
 
-@pytest.mark.parametrize("corner, side, offset_deg", [("R00", "intra", (0.05, -0.04)),
-                                                     ("R44", "extra", (-0.03, 0.06))])
-def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, offset_deg):
+@pytest.mark.parametrize("corner, side, offset_deg, tile_deg",
+                         [("R00", "intra", (0.05, -0.04), 0.0),
+                          ("R44", "extra", (-0.03, 0.06), 0.0),
+                          ("R04", "intra", (0.02, 0.03), 0.125),
+                          ("R40", "extra", (-0.04, -0.01), 0.125)])
+def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, offset_deg,
+                                                               tile_deg):
     """The blur reference asks which sub-points of the cells on a vignetting edge reach the
-    detector.  The answer (from ray positions fitted over the pupil, mapping._PupilApertures)
-    must be that of batoid's own trace of those rays through its LSST model, point for
-    point, there and at random pupil points."""
+    detector.  The answer (from ray positions fitted over the pupil, mapping._PupilApertures,
+    at the field or interpolated over a field tile) must be that of batoid's own trace of
+    those rays through its LSST model, point for point, there and at random pupil points."""
     import batoid
 
     from cwfs_ros.core.blur import _boundary
@@ -104,8 +108,14 @@ def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, off
     rng = np.random.default_rng(3)
     x = np.concatenate([(g.x[cells, None] + dx).ravel(), rng.uniform(-1, 1, 2000)])
     y = np.concatenate([(g.y[cells, None] + dy).ravel(), rng.uniform(-1, 1, 2000)])
-    got = pupil_transmission(inst, side, x, y, defocus_mm=1.5, band="r", wavelength_nm=WL,
-                             field_deg=field)
+    kw = dict(defocus_mm=1.5, band="r", wavelength_nm=WL, tile_deg=tile_deg)
+    if tile_deg:
+        # A tile serves from its third field on (the first two are traced, as a map tile's).
+        for k in (1, 2):
+            pupil_transmission(inst, side, x[:10], y[:10], field_deg=(field[0] + 0.001 * k,
+                                                                       field[1]), **kw)
+    got = pupil_transmission(inst, side, x, y, field_deg=field, **kw)
+    assert not tile_deg or _tile_served(inst, side, field, tile_deg)
     tel = batoid.Optic.fromYaml("LSST_r.yaml")
     big_r = tel.pupilSize / 2.0
     rays = tel.trace(batoid.RayVector.fromStop(x * big_r, y * big_r, optic=tel,
@@ -116,6 +126,14 @@ def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, off
     truth = ~rays.vignetted & ~rays.failed & (r <= 1.0) & (r >= inst.obscuration)
     assert 0.05 < 1.0 - truth[:cells.size * 9].mean() < 0.95  # both states on the edges
     assert np.array_equal(got, truth)
+
+
+def _tile_served(inst, side: str, field: tuple[float, float], tile_deg: float) -> bool:
+    from cwfs_ros.core import mapping
+
+    tile = mapping._tile_of(field, tile_deg)
+    return any(key[1] == side and key[5] == tile and entry is not None
+               for key, entry in mapping._PUPIL_TILE_CACHE.items())
 
 
 @pytest.fixture(scope="module")

@@ -511,7 +511,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                         rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
                         footprint_inputs, float(inst.obscuration),
                         tuple(partial(pupil_transmission, inst, side, defocus_mm=defocus_mm,
-                                      band=band, wavelength_nm=wavelength_nm, field_deg=f)
+                                      band=band, wavelength_nm=wavelength_nm, field_deg=f,
+                                      tile_deg=algo.map_tile_deg)
                               for side, f in (("intra", field_intra_deg),
                                               ("extra", field_extra_deg))))
 

@@ -908,19 +908,14 @@ def _pupil_lattice(obscuration: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
             np.stack([right.ravel()[on], up.ravel()[on]]))
 
 
-def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
-                     field_deg: tuple[float, float], side: str,
-                     defocus_mm: float) -> _PupilApertures | None:
-    """Fit :class:`_PupilApertures` at one field and side (~2 ms of tracing); None when
-    an aperture is not a circle or annulus, a ray fails, or the fit misses its lattice by
-    more than _PUPIL_FIT_MAX_RESID_M.
-
-    Only the apertures that some pupil point can come near are kept: an aperture is left
-    out when every lattice ray passes it by more than twice the largest step between
-    neighbouring lattice rays on it (every pupil point lies within a lattice cell, so its
-    ray passes too).
-    """
-    lx, ly, exponents, pinv, neighbours = _pupil_lattice(float(inst.obscuration))
+def _pupil_fit_at(inst: Instrument, band: str, wavelength_nm: float,
+                  field_deg: tuple[float, float], side: str,
+                  defocus_mm: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(apertures (5, m), coefficients (k, 2 m))`` of the rays' aperture positions as
+    polynomials in the pupil at one field, from the traced lattice; None when an aperture is
+    not a circle or annulus, a ray fails, or the fit misses its lattice by more than
+    _PUPIL_FIT_MAX_RESID_M."""
+    lx, ly, exponents, pinv, _ = _pupil_lattice(float(inst.obscuration))
     traced = _aperture_positions(*_stop_rays(inst, band, wavelength_nm, field_deg, side,
                                              defocus_mm, lx, ly))
     if traced is None:
@@ -930,21 +925,90 @@ def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
     coef = pinv @ rhs
     if np.abs(_monomials(lx, ly, exponents).T @ coef - rhs).max() > _PUPIL_FIT_MAX_RESID_M:
         return None
+    return aps, coef
+
+
+def _pupil_apertures_from(obscuration: float, aps: np.ndarray,
+                          coef: np.ndarray) -> _PupilApertures:
+    """The :class:`_PupilApertures` of fitted coefficients, with only the apertures that
+    some pupil point can come near: an aperture is left out when every lattice ray passes
+    it by more than twice the largest step between neighbouring lattice rays on it (every
+    pupil point lies within a lattice cell, so its ray passes too)."""
+    lx, ly, exponents, _, neighbours = _pupil_lattice(obscuration)
+    pos = (coef.T @ _monomials(lx, ly, exponents)).reshape(aps.shape[1], 2, lx.size)
     margin = _edge_margin(pos[:, 0], pos[:, 1], aps[:, :, None])  # (m, n)
     step = np.zeros(len(pos))
     for nb in neighbours:
         ok = nb >= 0
         d = np.hypot(*(pos[:, :, ok] - pos[:, :, nb[ok]]).transpose(1, 0, 2))
         step = np.maximum(step, d.max(axis=1))
-    keep = margin.min(axis=1) < 2.0 * step
-    cols = np.stack([2 * np.flatnonzero(keep), 2 * np.flatnonzero(keep) + 1], axis=1).ravel()
+    keep = np.flatnonzero(margin.min(axis=1) < 2.0 * step)
+    cols = np.stack([2 * keep, 2 * keep + 1], axis=1).ravel()
     return _PupilApertures(exponents, np.ascontiguousarray(coef[:, cols]), aps[:, keep])
+
+
+_pupil_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
+_PUPIL_TILE_CACHE: dict[tuple, tuple | None] = {}
+_PUPIL_TILE_CACHE_SIZE = 64
+# Largest difference [m] between a node's traced lattice positions and the tile's field
+# polynomial there; the tile is not used beyond it (the fit is ~1e-12 m at the corners).
+_PUPIL_TILE_MAX_RESID_M = 1e-9
+
+
+def _pupil_tile(inst: Instrument, band: str, wavelength_nm: float, side: str,
+                defocus_mm: float, tile: tuple[int, int],
+                tile_deg: float) -> tuple | None:
+    """(apertures, coefficient polynomial (n_mono, k, 2 m)) over a field tile: the pupil
+    fits of its 5 x 5 nodes, fitted with the tile's quartic in field; None if a node has no
+    pupil fit, the nodes do not share their apertures, or the quartic misses a node."""
+    u, v, nodes = _tile_nodes(tile, tile_deg, _MAP_TILE_NODES)
+    fits = [_pupil_fit_at(inst, band, wavelength_nm, node, side, defocus_mm)
+            for node in nodes]
+    if any(f is None for f in fits) or any(not np.array_equal(f[0], fits[0][0])
+                                           for f in fits):
+        return None
+    coefs = np.array([f[1] for f in fits])  # (n_nodes, k, 2 m)
+    mono = _tile_monomials(u, v)
+    poly, *_ = np.linalg.lstsq(mono, coefs.reshape(len(nodes), -1), rcond=None)
+    lx, ly, exponents, _, _ = _pupil_lattice(float(inst.obscuration))
+    basis = _monomials(lx, ly, exponents).T
+    miss = (mono @ poly).reshape(coefs.shape) - coefs
+    if np.abs(np.einsum("lk,nkc->nlc", basis, miss)).max() > _PUPIL_TILE_MAX_RESID_M:
+        return None
+    return fits[0][0], poly.reshape(len(poly), *coefs.shape[1:])
+
+
+def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
+                     field_deg: tuple[float, float], side: str, defocus_mm: float,
+                     tile_deg: float = 0.0) -> _PupilApertures | None:
+    """:class:`_PupilApertures` at one field and side: fitted to a traced lattice (~4 ms),
+    or with ``tile_deg`` > 0 read from the field tile's polynomial (~0.3 ms; the tile's
+    first fields are traced, as for the map tiles).  None: trace every point."""
+    if tile_deg > 0:
+        tile = _tile_of(field_deg, tile_deg)
+        key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile,
+               float(tile_deg))
+        if _tile_wanted(_pupil_tile_requests, key, field_deg):
+            if key not in _PUPIL_TILE_CACHE:
+                if len(_PUPIL_TILE_CACHE) >= _PUPIL_TILE_CACHE_SIZE:
+                    _PUPIL_TILE_CACHE.pop(next(iter(_PUPIL_TILE_CACHE)))
+                _PUPIL_TILE_CACHE[key] = _pupil_tile(inst, band, wavelength_nm, side,
+                                                     defocus_mm, tile, tile_deg)
+            entry = _PUPIL_TILE_CACHE[key]
+            if entry is not None:
+                aps, poly = entry
+                mono = _tile_monomials(*_tile_local(field_deg, tile, tile_deg))
+                return _pupil_apertures_from(float(inst.obscuration), aps,
+                                             np.tensordot(mono, poly, axes=1))
+    fit = _pupil_fit_at(inst, band, wavelength_nm, field_deg, side, defocus_mm)
+    return None if fit is None else _pupil_apertures_from(float(inst.obscuration), *fit)
 
 
 def pupil_transmission(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *,
                        defocus_mm: float, band: str | None = None,
                        wavelength_nm: float | None = None,
-                       field_deg: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+                       field_deg: tuple[float, float] = (0.0, 0.0),
+                       tile_deg: float = 0.0) -> np.ndarray:
     """Whether the rays from reduced pupil points (x, y) reach the detector of one side:
     the annulus, and the instrument's vignetting at ``field_deg`` (poly10: its circles).
     For points off the pupil grid, e.g. near a vignetting edge
@@ -952,10 +1016,11 @@ def pupil_transmission(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray
 
     batoid: the rays' positions on the clear apertures come from a polynomial in the pupil
     fitted to 224 traced rays at this field (:class:`_PupilApertures`, ~3e-8 m from the
-    trace at the LSST corners); a point within _EDGE_TRACE_M of an edge is traced, and so
-    is every point where the optic's apertures are not circles or annuli.  The answer is
-    the trace's (test_blur); the blur reference's ~3,000 edge points a side cost ~3 ms
-    instead of ~13 ms of tracing.
+    trace at the LSST corners), or with ``tile_deg`` > 0 to those of its field tile's nodes
+    and interpolated in field (:func:`_pupil_tile`); a point within _EDGE_TRACE_M of an
+    edge is traced, and so is every point where the optic's apertures are not circles or
+    annuli.  The answer is the trace's (test_blur).  The blur reference's ~3,000 edge
+    points a side cost ~8 ms so, ~4 ms from a tile, against ~13 ms of tracing.
     """
     x = np.asarray(x, dtype=float).ravel()
     y = np.asarray(y, dtype=float).ravel()
@@ -967,7 +1032,7 @@ def pupil_transmission(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray
         return inside & _poly10(inst, side, defocus_mm, x, y, fld)[1]
     band = band or inst.default_band
     wl = inst.wavelength_nm(band, wavelength_nm)
-    fit = _pupil_apertures(inst, band, wl, fld, side, float(defocus_mm))
+    fit = _pupil_apertures(inst, band, wl, fld, side, float(defocus_mm), float(tile_deg))
     if fit is None:
         return inside & _trace_defocused(inst, band, wl, fld, side, defocus_mm, x, y)[3]
     m = fit.margins(x, y)
