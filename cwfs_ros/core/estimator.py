@@ -48,7 +48,13 @@ from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
 from .errors import ConfigError, ShapeMismatchError
 from .instrument import Instrument, load_instrument
-from .mapping import ImageMapping, design_zernikes_tiled, nominal_mapping, pupil_transmission
+from .mapping import (
+    ImageMapping,
+    design_zernikes_tiled,
+    nominal_mapping,
+    pupil_transmission,
+    reset_field_tiles,
+)
 from .tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from .zernike import ZernikeBasis, zernike_basis
 
@@ -587,6 +593,13 @@ class WavefrontResult:
             "wavelength_nm": self.wavelength_nm,
             "wall_time_s": round(self.wall_time_s, 6),
         }
+
+
+def reset_caches() -> None:
+    """Drop the pair geometries and the field tiles (:func:`.mapping.reset_field_tiles`):
+    the state of a freshly started worker process."""
+    pair_geometry.cache_clear()
+    reset_field_tiles()
 
 
 def _field(value: Any, name: str) -> tuple[float, float]:

@@ -1093,6 +1093,22 @@ _design_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
 design_tile_builds = 0
 
 
+def reset_field_tiles() -> None:
+    """Forget every field tile and the fields each tile has seen, as in a fresh process.
+
+    A tile serves a field from its third distinct field on (the first two are traced), and
+    it differs from the direct trace by up to ~1e-7 px (mapping) and ~0.2 nm (design), so
+    an estimate can move by ~0.1 nm with the history of the process it runs in.
+    :func:`cwfs_ros.replay.replay` starts from here, as a freshly started node's workers do.
+    """
+    _map_tile_requests.clear()
+    _MAP_TILE_CACHE.clear()
+    _design_tile_requests.clear()
+    _design_tile.cache_clear()
+    _pupil_tile_requests.clear()
+    _PUPIL_TILE_CACHE.clear()
+
+
 def _tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
     """Index of the ``tile_deg`` field tile holding ``field_deg``."""
     return (int(np.floor(field_deg[0] / tile_deg)), int(np.floor(field_deg[1] / tile_deg)))
