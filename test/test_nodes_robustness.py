@@ -292,3 +292,41 @@ def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, s
     (v2,) = of(vectors, T + SEC)
     assert list(v2.corner_valid) == [True, True, False, True]
     assert "R40 bad_corner_wavefront" in v2.status
+
+
+def test_wavefront_node_refuses_to_start_with_a_missing_selection_file(ros_context, tmp_path):
+    """The frame path's selection file (detection limits, the fitted noise model) is read by
+    the workers at every visit; a mistyped path stops the node at start, naming the file,
+    instead of making every frame visit invalid or falling back to built-in numbers."""
+    from cwfs_ros.core.errors import ConfigError
+
+    missing = tmp_path / "no_such_selection.yaml"
+    with pytest.raises(ConfigError, match="no_such_selection.yaml"):
+        WavefrontNode(context=ros_context, parameter_overrides=[
+            Parameter("selection_config", value=str(missing)),
+            Parameter("corners", value=["R00"]),
+            Parameter("workers", value=1)])
+
+
+def test_a_failing_visit_timeout_pass_is_reported_not_raised(ros_context):
+    """The 0.1 s timer that times visits out runs outside any message callback: if it ever
+    raised (a defect), rclpy would stop the node's executor.  Fault injected: the pairing
+    buffer's expiry raises; the pass must be counted as an internal error, named, and the
+    next pass must run again normally."""
+    wf = WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1)])
+    try:
+        real = wf.pairing.expire
+
+        def broken(now):
+            raise RuntimeError("injected")
+
+        wf.pairing.expire = broken
+        wf._expire()
+        assert wf.rejected.counts["internal_error"] == 1
+        assert "injected" in wf.rejected.last_message
+        wf.pairing.expire = real
+        wf._expire()
+        assert wf.rejected.counts["internal_error"] == 1
+    finally:
+        wf.destroy_node()

@@ -218,6 +218,11 @@ def test_combination_single_pair_uses_noise_model():
     assert np.allclose(r.uncertainty_nm, np.sqrt((2000 * q) ** 2 + 9 + 1))
     empty = combine_pairs(np.zeros((0, 19)), np.zeros(0), config=cfg)
     assert empty.n_pairs == 0 and np.all(np.isnan(empty.zernikes_nm))
+    # With no prior weight on the model there is still no scatter to replace it with one
+    # pair: the model alone, as above (it was 0 nm: no error bar at all).
+    bare = CombinationConfig(noise_coefficient_nm=2000.0, pair_floor_nm=0.0, prior_dof=0.0)
+    r0 = combine_pairs(np.ones((1, 19)), np.array([q]), config=bare)
+    assert np.allclose(r0.uncertainty_nm, 2000 * q)
 
 
 def _star(side, snr, fx, fy):
@@ -281,6 +286,30 @@ def test_later_pairs_start_warm_and_reach_the_cold_answer(intra_frame, extra_fra
         assert np.abs(w.zernikes_nm - c.zernikes_nm).max() < 0.1
 
 
+def test_an_unexpected_error_drops_its_pair_only(intra_frame, extra_frame, monkeypatch):
+    """A library's or a defect's exception in one pair's estimate (not a CwfsError) is that
+    pair's 'internal_error', named; the corner's other pairs are still estimated."""
+    import cwfs_ros.core.estimator as E
+
+    h = load_half_chips()["R00"]
+    stars = [select_stamps(f.image, h[side], config=_config())[0]
+             for f, side in ((intra_frame, "intra"), (extra_frame, "extra"))]
+    real = E.estimate_wavefront
+    calls = []
+
+    def first_fails(*a, **kw):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("injected")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(E, "estimate_wavefront", first_fails)
+    res = estimate_pairs(pair_stars(*stars), EstimatorSettings(solver="lsq"))
+    assert [p.status for p in res] == ["internal_error", "ok"]
+    assert res[0].message == "ValueError: injected"
+    assert np.all(np.isnan(res[0].zernikes_nm)) and np.all(np.isfinite(res[1].zernikes_nm))
+
+
 def test_frame_job_never_raises():
     bad = np.full((400, 400), np.nan)
     res = run_corner_frame_job(CornerFrameJob("R00", 5, bad, bad))
@@ -291,6 +320,9 @@ def test_frame_job_never_raises():
     flat = np.random.default_rng(0).poisson(30.0, (400, 400)).astype(float)
     res = run_corner_frame_job(CornerFrameJob("R00", 5, flat, flat))
     assert not res.valid and res.reason == "no_donuts"
+    # Both halves are empty, and the message accounts for each.
+    assert "intra and extra half" in res.status
+    assert "intra: 0 detected and rejected; extra: 0 detected and rejected" in res.status
 
 
 def test_swap_check_confirms_the_frames_once_and_refuses_exchanged_frames(intra_frame,
@@ -341,3 +373,31 @@ def test_detection_refuses_non_finite_frames_anywhere():
     frame[20:22, 20:22] = np.float32(3e38)
     with pytest.raises(ImageError, match="too large"):
         detect_donuts(frame, **kw)
+
+
+def test_a_missing_selection_file_is_a_config_error(tmp_path):
+    """Not the dataclass defaults: the file holds the fitted noise model (measured: a
+    mistyped path used to give c = 2000 nm instead of the fitted ~1988 and 6181)."""
+    from cwfs_ros.core.errors import ConfigError
+    from cwfs_ros.core.selection import load_selection_config
+
+    with pytest.raises(ConfigError, match="not found"):
+        load_selection_config(tmp_path / "nope.yaml", solver="lsq")
+
+
+
+def test_a_frame_without_sky_noise_still_gives_its_donuts(telescope, halves):
+    """No sky and no read noise (camera_sim_node allows both): the sky noise measures 0,
+    and without a floor the filter's float rounding made ~60 'sources' that blended both
+    real donuts away (the corner reported no donuts)."""
+    h = halves["intra"]
+    stars = [StarSpec(250.0, 250.0, 4.0e5), StarSpec(650.0, 350.0, 2.0e5)]
+    frame = render_frame(telescope, stars, field_ref_deg=h.field_deg,
+                         detector_offset_mm=h.detector_offset_mm, shape_px=(600, 900),
+                         sky_per_pixel=0.0, rng=np.random.default_rng(3))
+    _, dets, _ = select_stamps(frame.image, h, config=SelectionConfig(
+        detection=DetectionConfig(saturation_level=1e9)))
+    assert len(dets) == 2, [(round(d.x), round(d.y), d.status) for d in dets]
+    assert all(d.ok for d in dets), [d.message for d in dets]
+    for s in stars:
+        assert len(_near(dets, s)) == 1

@@ -198,7 +198,10 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
         # Shrink the observed reduced chi^2 towards 1 (the model) with prior_dof pairs of
         # weight: with 2-3 pairs the sample scatter alone is too noisy to be the error bar.
         dof = np.maximum(nj - 1, 0)
-        scale2 = (cfg.prior_dof + dof * chi2) / np.maximum(cfg.prior_dof + dof, 1e-12)
+        # No scatter to see (one pair) and no prior weight: the model alone, not zero.
+        weight = cfg.prior_dof + dof
+        scale2 = np.where(weight > 0, (cfg.prior_dof + dof * chi2) / np.maximum(weight, 1e-12),
+                          1.0)
     unc = np.sqrt(var_model * scale2 + g ** 2)
     if used.sum() >= 2:
         unc = unc * cfg.multi_pair_scale

@@ -545,11 +545,14 @@ def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, 
     outside = (rc2 > foot * foot) & (rc2 <= 2.0 * half * half)
     hole_frac = float(img[hole].sum()) / pos if hole.any() else 0.0
     out_frac = float(img[outside].sum()) / pos if outside.any() else 0.0
-    # Their noise (sky and the light's own Poisson noise), for noise-aware thresholds.
-    hole_sig = np.sqrt(hole.sum() * bg.noise ** 2 + max(hole_frac * flux, 0.0)) / pos
-    out_sig = np.sqrt(outside.sum() * bg.noise ** 2 + max(out_frac * flux, 0.0)) / pos
+    # Their noise (sky and the light's own Poisson noise), for noise-aware thresholds.  The
+    # light's variance in frame units is flux / gain, as in the S/N above.
+    g = cfg.gain_e_per_adu
+    hole_sig = np.sqrt(hole.sum() * bg.noise ** 2 + max(hole_frac * flux, 0.0) / g) / pos
+    out_sig = np.sqrt(outside.sum() * bg.noise ** 2 + max(out_frac * flux, 0.0) / g) / pos
     # The centroid's own noise: the flux-weighted scatter of pixel radii over sqrt(N_eff).
-    cen_sig = np.sqrt(npix * bg.noise ** 2 * (r_out * r_out) + flux * r_out * r_out) / pos
+    cen_sig = np.sqrt(npix * bg.noise ** 2 * (r_out * r_out)
+                      + max(flux, 0.0) / g * r_out * r_out) / pos
     peak_raw = float(raw[inside].max()) if inside.any() else float("nan")
     return dict(x=cx, y=cy, flux=flux, snr=float(snr), peak_value=peak_raw,
                 hole_fraction=hole_frac, outside_fraction=out_frac,
@@ -623,6 +626,13 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
     else:
         bg, sub = background, binned - _sky_binned(background, binned.shape, b)
+    # A sky without noise (a simulation with neither sky nor read noise) would make the
+    # filter's float rounding sources by the dozen, and blend every real donut with them:
+    # the pixel noise is taken as at least one electron's shot noise.  Real sky and read
+    # noise are several electrons.
+    floor = 1.0 / cfg.gain_e_per_adu
+    if not bg.noise >= floor:
+        bg = replace(bg, noise=floor)
     support = (outer_radius_px + cfg.spill_px) / b + 1.0
     key = (round(outer_radius_px / b, 3), round(inner_radius_px / b, 3), round(support, 3))
     sidelobe = _template(*key)[1]

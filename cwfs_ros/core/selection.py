@@ -119,7 +119,11 @@ def load_selection_config(path: str | Path | None = None, *, solver: str | None 
         **overrides: top-level fields (``max_pairs``, ``pairing``).
     """
     p = Path(path) if path is not None else config_dir() / "selection.yaml"
-    data = _selection_yaml(str(p), p.stat().st_mtime) if p.exists() else {}
+    if not p.is_file():
+        # Not the built-in defaults: the file holds the fitted noise model and the
+        # detection limits, and a mistyped path must not quietly change them.
+        raise ConfigError(f"selection file {p} not found")
+    data = _selection_yaml(str(p), p.stat().st_mtime)
     try:
         det = DetectionConfig(**(data.get("detection") or {}))
         comb_data = dict(data.get("combination") or {})
@@ -317,10 +321,14 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
                 # The warm start folded the compensation: the paper's cold start decides.
                 r = estimate_wavefront(si.stamp, se.stamp, **fields, **kwargs)
                 common["warm_start"] = False
-        except CwfsError as exc:
-            tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
-                                                     else "bad_image"))
-            out.append(PairResult(**common, status=tag, message=str(exc), zernikes_nm=nan,
+        except Exception as exc:  # noqa: BLE001 - one pair's failure drops that pair only
+            if isinstance(exc, CwfsError):
+                tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
+                                                         else "bad_image"))
+                text = str(exc)
+            else:  # a defect or a library's error: named, and the other pairs still count
+                tag, text = "internal_error", f"{type(exc).__name__}: {exc}"
+            out.append(PairResult(**common, status=tag, message=text, zernikes_nm=nan,
                                   intrinsic_nm=nan,
                                   compute_ms=(time.perf_counter() - t0) * 1e3))
             continue
@@ -495,10 +503,13 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
             settings.solver, os.getpid())
 
     if not st_in or not st_ex:
-        which = " and ".join(s for s, st in (("intra", st_in), ("extra", st_ex)) if not st)
-        n_rej = sum(not d.ok for d in (det_in if not st_in else det_ex))
-        return done(False, "no_donuts", f"no usable donut on the {which} half "
-                    f"({n_rej} detected and rejected)", None, results)
+        empty = [(s, dets) for s, st, dets in (("intra", st_in, det_in),
+                                                ("extra", st_ex, det_ex)) if not st]
+        detail = "; ".join(f"{s}: {sum(not d.ok for d in dets)} detected and rejected"
+                           for s, dets in empty)
+        which = " and ".join(s for s, _ in empty)
+        return done(False, "no_donuts", f"no usable donut on the {which} half ({detail})",
+                    None, results)
     if not ok:
         tags = sorted({p.status for p in results})
         return done(False, "no_valid_pair", f"all {len(results)} pair(s) failed "

@@ -46,6 +46,7 @@ from cwfs_ros.core.corner_pool import (
 )
 from cwfs_ros.core.errors import ConfigError
 from cwfs_ros.core.images import FLIPS, Orientation
+from cwfs_ros.core.selection import load_selection_config
 from cwfs_ros.core.visits import (
     CORNERS,
     SIDES,
@@ -123,6 +124,9 @@ class WavefrontNode(Node):
             raise ConfigError(f"no field points for corners {missing} in the sensor config")
         self.settings = self._settings_from(lambda n: p(n))
         validate_settings(self.settings)
+        # A bad selection file stops the node at start, as a bad sensor file does, rather
+        # than making every frame visit invalid (the workers read it per visit).
+        load_selection_config(p("selection_config") or None, solver=self.settings.solver)
         self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
                              for c in self.corners for s in SIDES}
         self.frame_id = p("frame_id")
@@ -462,6 +466,13 @@ class WavefrontNode(Node):
         self.pub_vector.publish(wavefront_vector_msg(vec, self.frame_id))
 
     def _expire(self) -> None:
+        try:
+            self._expire_now()
+        except Exception as exc:  # noqa: BLE001 - a timer callback must not kill the node
+            self._reject(Rejection("internal_error", f"visit timeout handling: "
+                                   f"{type(exc).__name__}: {exc}"), warn=True)
+
+    def _expire_now(self) -> None:
         now = time.monotonic()
         with self._lock:
             unpaired = self.pairing.expire(now)
