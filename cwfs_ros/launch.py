@@ -129,8 +129,10 @@ def spin_until_shutdown(executor) -> None:
     rclpy reports that as ``ExternalShutdownException``, or, when the shutdown lands while
     the executor builds its wait set, as ``RCLError`` (seen in CI, 2026-12-01), or as
     ``InvalidHandle`` when the nodes' entities are being destroyed at that moment (seen in a
-    test teardown, 2026-12-02): all the same clean end.  Either error while the context is
-    still up and the executor not shut down is a real failure and is raised.
+    test teardown, 2026-12-02), or as ``AttributeError`` on a guard condition already
+    released (``'NoneType' object has no attribute 'handle'``, seen in CI the same day):
+    all the same clean end.  Any of these while the context is still up and the executor
+    not shut down is a real failure and is raised.
     """
     from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
     from rclpy.executors import ExternalShutdownException
@@ -139,7 +141,7 @@ def spin_until_shutdown(executor) -> None:
         executor.spin()
     except ExternalShutdownException:
         pass
-    except (RCLError, InvalidHandle):
+    except (RCLError, InvalidHandle, AttributeError):
         # rclpy has no public "is shut down" for an executor; its spin loop reads this flag.
         if executor.context.ok() and not getattr(executor, "_is_shutdown", False):
             raise
