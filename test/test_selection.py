@@ -386,6 +386,28 @@ def test_a_missing_selection_file_is_a_config_error(tmp_path):
 
 
 
+@pytest.mark.parametrize("seed", [5, 8])
+def test_a_faint_companion_inside_a_bright_donuts_footprint_is_seen(telescope, halves, seed):
+    """A star of a tenth of a bright donut's flux, 90 px from it (inside its footprint),
+    contaminates its stamp by a few per cent: the bright donut must be rejected as
+    blended, and alone the same donut accepted.  Its filter peak is under the side-lobe
+    limit of the bright donut (0.47 of its S/N); what tells it from a side lobe is that the
+    bright donut's own light does not explain it (DetectionConfig.unexplained_fraction).
+    With the side-lobe rule alone the donut was accepted."""
+    h = halves["intra"]
+    bright = StarSpec(300.0, 300.0, 2.0e6)
+    cfg = SelectionConfig(detection=DetectionConfig(saturation_level=1e9))
+    for stars, status in (([bright, StarSpec(390.0, 300.0, 2.0e5)], "blended"),
+                          ([bright], "ok")):
+        frame = render_frame(telescope, stars, field_ref_deg=h.field_deg,
+                             detector_offset_mm=h.detector_offset_mm, shape_px=(600, 700),
+                             sky_per_pixel=1000.0, rng=np.random.default_rng(seed))
+        _, dets, _ = select_stamps(frame.image, h, config=cfg)
+        assert len(dets) == len(stars), [(round(d.x), round(d.y), d.status) for d in dets]
+        found = _near(dets, bright, radius=10.0)
+        assert len(found) == 1 and found[0].status == status, [d.message for d in dets]
+
+
 def test_a_frame_without_sky_noise_still_gives_its_donuts(telescope, halves):
     """No sky and no read noise (camera_sim_node allows both): the sky noise measures 0,
     and without a floor the filter's float rounding made ~60 'sources' that blended both

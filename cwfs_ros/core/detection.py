@@ -35,6 +35,7 @@ Pixel coordinates are pixel-centre based: pixel (col i, row j) is centred at (x,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -96,8 +97,11 @@ class DetectionConfig:
             centre (an overlapping companion pulls the centroid towards itself).
         shape_nsigma: each of the three shape limits is raised by this many times the
             measurement's own noise, so that faint donuts are not called blended by noise.
-        sidelobe_margin: a peak within two donut diameters of a stronger one is a source only
-            if its S/N exceeds ``sidelobe_margin * side lobe * S/N of the stronger``.
+        sidelobe_margin: a peak within two donut diameters of a stronger one is a source
+            if its S/N exceeds ``sidelobe_margin * side lobe * S/N of the stronger`` ...
+        unexplained_fraction: ... or if the stronger donut's own light (inside its
+            footprint) leaves more of the peak unexplained than ``detect_snr +
+            unexplained_fraction * S/N of the stronger``: a fainter star close by.
         max_candidates: at most this many peaks are measured (brightest first).
     """
 
@@ -114,6 +118,7 @@ class DetectionConfig:
     max_centre_offset_px: float = 3.0
     shape_nsigma: float = 4.0
     sidelobe_margin: float = 1.5
+    unexplained_fraction: float = 0.02
     max_candidates: int = 64
 
     def __post_init__(self) -> None:
@@ -127,7 +132,7 @@ class DetectionConfig:
             if not (isinstance(v, (int, float)) and v > 0):
                 problems.append(f"{name} must be a positive number, got {v!r}")
         for name in ("spill_px", "max_hole_fraction", "max_outside_fraction",
-                     "max_centre_offset_px", "shape_nsigma"):
+                     "max_centre_offset_px", "shape_nsigma", "unexplained_fraction"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0):
                 problems.append(f"{name} must be >= 0, got {v!r}")
@@ -452,8 +457,19 @@ class _Candidate:
 
 
 def _find_peaks(snr_map: np.ndarray, threshold: float, min_sep_b: float, sidelobe: float,
-                margin: float, near_b: float, max_n: int, b: int) -> list[_Candidate]:
-    """Local maxima above threshold, minus the side lobes of stronger peaks."""
+                margin: float, near_b: float, max_n: int, b: int,
+                explained: Callable[[tuple[int, int], tuple[int, int]], float] | None = None,
+                unexplained: float = 0.0) -> list[_Candidate]:
+    """Local maxima above threshold, minus the side lobes of stronger peaks.
+
+    A weaker peak near a stronger one is its side lobe if it is below ``margin * sidelobe``
+    of it (plus the threshold), unless ``explained(strong, weak)`` -- the S/N that the
+    stronger donut's own light gives at the weaker peak -- leaves more than ``threshold +
+    unexplained * strong`` of it unexplained.  The side-lobe level is that of the central
+    lobe's shoulder, which also covers the bumps that real (vignetted, aberrated) donuts
+    make in the filter's response, so a faint star next to a bright one needs the second
+    test to be seen.
+    """
     half = max(1, int(np.ceil(min_sep_b)))
     iy, ix = _local_maxima(snr_map, threshold, half)
     vals = snr_map[iy, ix]
@@ -464,8 +480,10 @@ def _find_peaks(snr_map: np.ndarray, threshold: float, min_sep_b: float, sidelob
         lobe = False
         for ky, kx, kv in kept:
             if np.hypot(y - ky, x - kx) <= near_b and v < margin * sidelobe * kv + threshold:
-                lobe = True
-                break
+                lobe = (explained is None or v - explained((ky, kx), (y, x))
+                        < threshold + unexplained * kv)
+                if lobe:
+                    break
         if not lobe:
             kept.append((y, x, v))
         if len(kept) >= max_n:
@@ -635,13 +653,29 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         bg = replace(bg, noise=floor)
     support = (outer_radius_px + cfg.spill_px) / b + 1.0
     key = (round(outer_radius_px / b, 3), round(inner_radius_px / b, 3), round(support, 3))
-    sidelobe = _template(*key)[1]
+    tmpl, sidelobe = _template(*key)
     resp = _correlate(sub, key)
     noise_b = bg.noise * b  # binned-pixel sky noise
     snr_map = resp / max(noise_b, 1e-12)
+    foot_b = (outer_radius_px + cfg.spill_px) / b
+
+    def explained(strong: tuple[int, int], weak: tuple[int, int]) -> float:
+        """S/N at ``weak`` of the light within the footprint of the donut at ``strong``
+        (binned px): the filter's response to that donut alone."""
+        c = tmpl.shape[0] // 2
+        ys = np.arange(weak[0] - c, weak[0] + c + 1)
+        xs = np.arange(weak[1] - c, weak[1] + c + 1)
+        iy = (ys >= 0) & (ys < sub.shape[0])
+        ix = (xs >= 0) & (xs < sub.shape[1])
+        ys, xs = ys[iy], xs[ix]
+        inside = ((ys[:, None] - strong[0]) ** 2 + (xs[None, :] - strong[1]) ** 2
+                  <= foot_b * foot_b)
+        light = np.where(inside, sub[np.ix_(ys, xs)], 0.0)
+        return float((light * tmpl[np.ix_(iy, ix)]).sum() / max(noise_b, 1e-12))
+
     cands = _find_peaks(snr_map, cfg.detect_snr, 0.5 * outer_radius_px / b, sidelobe,
-                        cfg.sidelobe_margin, 2.0 * (outer_radius_px + cfg.spill_px) / b,
-                        cfg.max_candidates, b)
+                        cfg.sidelobe_margin, 2.0 * foot_b, cfg.max_candidates, b,
+                        explained, cfg.unexplained_fraction)
     ny, nx = a.shape
     half = stamp_px / 2.0
     blend_d = (cfg.blend_distance_px if cfg.blend_distance_px is not None
