@@ -276,6 +276,8 @@ def test_later_pairs_start_warm_and_reach_the_cold_answer(intra_frame, extra_fra
     warm = estimate_corner_frames(intra_frame.image, extra_frame.image, **kw)
     assert [p.warm_start for p in warm.pairs] == [False, True]
     assert warm.pairs[1].iterations < warm.pairs[0].iterations == 14
+    # It stopped early because it met the tolerance, and says so.
+    assert warm.pairs[1].converged
     h = load_half_chips()["R00"]
     stars = [select_stamps(f.image, h[side], config=_config())[0]
              for f, side in ((intra_frame, "intra"), (extra_frame, "extra"))]

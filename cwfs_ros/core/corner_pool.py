@@ -239,8 +239,9 @@ def frame_outcome(res: Any) -> CornerOutcome:
                                "the frame combination returned NaN/Inf Zernikes",
                                tuple(res.field_deg), tuple(res.field_deg), res.solver, ms)
     return CornerOutcome(res.corner, int(res.stamp_ns), True, res.summary(), "", z,
-                         tuple(float(v) for v in res.field_deg), bool(res.caustic), True,
-                         int(res.iterations), ms, res.solver, res.worker_pid,
+                         tuple(float(v) for v in res.field_deg), bool(res.caustic),
+                         bool(res.converged), int(res.iterations), ms, res.solver,
+                         res.worker_pid,
                          uncertainty_nm=unc, n_pairs=int(res.n_pairs))
 
 

@@ -250,6 +250,7 @@ class PairResult:
             ``"inconclusive"``, ``"off"``), ``"skipped"`` when an earlier pair had confirmed
             the frames, ``""`` when the estimate failed (a swapped pair fails as such).
         warm_start: the outer loop started from the first good pair's departure.
+        converged: the outer loop met its tolerance before its iteration limit.
     """
 
     index: int
@@ -270,6 +271,7 @@ class PairResult:
     compute_ms: float = 0.0
     swap_check: str = ""
     warm_start: bool = False
+    converged: bool = False
 
     @property
     def departure_nm(self) -> np.ndarray:
@@ -355,7 +357,8 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
             continue
         out.append(PairResult(**common, status="ok", message="", zernikes_nm=z,
                               intrinsic_nm=np.asarray(r.intrinsic_nm, dtype=np.float64),
-                              iterations=r.iterations, compute_ms=ms))
+                              iterations=r.iterations, compute_ms=ms,
+                              converged=bool(r.converged)))
         if start is None and warm_start:
             start = r.departure_all_nm
     return out
@@ -405,6 +408,12 @@ class CornerFrameResult:
     def iterations(self) -> int:
         """Most outer iterations run by a combined pair (0 if none)."""
         return max((p.iterations for p in self.pairs if p.used), default=0)
+
+    @property
+    def converged(self) -> bool:
+        """Every combined pair's outer loop met its tolerance (False if none was used)."""
+        used = [p for p in self.pairs if p.used]
+        return bool(used) and all(p.converged for p in used)
 
     def summary(self) -> str:
         """One line for a ``CornerWavefront.status``: the status, then what was dropped,
