@@ -245,6 +245,7 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
 def _run_demo(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from .core.blur import MAX_SEEING_FWHM_ARCSEC
     from .demo import LoopConfig, LoopError, run_closed_loop, write_report
     from .launch import sim_params_file
     from .sim.perturbation import random_perturbation
@@ -253,8 +254,9 @@ def _run_demo(args: argparse.Namespace) -> int:
         raise CliError(f"--wavefront-error must be > 0 nm, got {args.wavefront_error:g}")
     if not args.photons >= 1e3:
         raise CliError(f"--photons must be >= 1000, got {args.photons:g}")
-    if not 0.0 <= args.seeing <= 10.0:
-        raise CliError(f"--seeing must be in [0, 10] arcsec, got {args.seeing:g}")
+    if not 0.0 <= args.seeing <= MAX_SEEING_FWHM_ARCSEC:
+        raise CliError(f"--seeing must be in [0, {MAX_SEEING_FWHM_ARCSEC:g}] arcsec, got "
+                       f"{args.seeing:g}")
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         raise CliError(f"--domain-id must be in 0..232, got {args.domain_id}")
     for f in args.params:

@@ -36,12 +36,27 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from .compensation import compensate
+from .errors import ConfigError
 from .mapping import ImageMapping
 
-__all__ = ["FWHM_PER_SIGMA", "design_donut", "blur_reference", "seeing_sigma_px"]
+__all__ = ["FWHM_PER_SIGMA", "MAX_SEEING_FWHM_ARCSEC", "check_seeing", "design_donut",
+           "blur_reference", "seeing_sigma_px"]
 
 FWHM_PER_SIGMA = float(2.0 * np.sqrt(2.0 * np.log(2.0)))
 _ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
+# The seeing accepted as an input (estimator, nodes, CLI), arcsec FWHM; 0 = none given.
+MAX_SEEING_FWHM_ARCSEC = 10.0
+
+
+def check_seeing(seeing_fwhm_arcsec: object) -> float:
+    """The seeing as a float; ConfigError unless a finite number in
+    [0, MAX_SEEING_FWHM_ARCSEC]."""
+    v = seeing_fwhm_arcsec
+    if not (isinstance(v, (int, float)) and np.isfinite(v)
+            and 0.0 <= v <= MAX_SEEING_FWHM_ARCSEC):
+        raise ConfigError(f"seeing_fwhm_arcsec must be in [0, {MAX_SEEING_FWHM_ARCSEC:g}] "
+                          f"arcsec, got {v!r}")
+    return float(v)
 
 
 def seeing_sigma_px(seeing_fwhm_arcsec: float, pixel_size_um: float,

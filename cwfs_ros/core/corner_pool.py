@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .blur import check_seeing
 from .errors import ConfigError, CwfsError
 from .images import Orientation, orient_image, pad_stamp
 
@@ -105,9 +106,7 @@ def validate_settings(settings: EstimatorSettings) -> None:
                                        if settings.outer_iterations > 0 else {}))
     if not 0 <= settings.pad_px <= 256:
         raise ConfigError(f"pad_px must be in 0..256, got {settings.pad_px}")
-    if not 0.0 <= settings.seeing_fwhm_arcsec <= 10.0:
-        raise ConfigError(f"seeing_fwhm_arcsec must be in [0, 10], got "
-                          f"{settings.seeing_fwhm_arcsec}")
+    check_seeing(settings.seeing_fwhm_arcsec)
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from scipy.linalg import solve_triangular
 from scipy.ndimage import distance_transform_edt, gaussian_filter, maximum_filter1d
 
 from ..paths import config_dir
-from .blur import blur_reference, seeing_sigma_px
+from .blur import blur_reference, check_seeing, seeing_sigma_px
 from .checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
 from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
@@ -670,10 +670,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     sat = inst.saturation_level if saturation_level is None else saturation_level
     if sat is not None and not (isinstance(sat, (int, float)) and np.isfinite(sat)):
         raise ConfigError(f"saturation_level must be a finite number or None, got {sat!r}")
-    if not (isinstance(seeing_fwhm_arcsec, (int, float)) and np.isfinite(seeing_fwhm_arcsec)
-            and 0.0 <= seeing_fwhm_arcsec <= 10.0):
-        raise ConfigError(f"seeing_fwhm_arcsec must be in [0, 10] arcsec, got "
-                          f"{seeing_fwhm_arcsec!r}")
+    seeing_fwhm_arcsec = check_seeing(seeing_fwhm_arcsec)
     fi = _field(field_intra_deg, "field_intra_deg")
     fe = _field(field_extra_deg, "field_extra_deg")
     defocus = inst.defocal_offset_mm if defocal_offset_mm is None else float(defocal_offset_mm)

@@ -36,6 +36,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
+from cwfs_ros.core.blur import MAX_SEEING_FWHM_ARCSEC
 from cwfs_ros.core.visits import CORNERS
 from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
@@ -185,7 +186,7 @@ class CameraSimNode(Node):
         d("npix", 160, describe("Stamp side [px].", int_range=(16, 4096), **ro))
         d("seeing_fwhm_arcsec", 0.0, describe(
             "Gaussian seeing blur FWHM [arcsec] of every donut, stamps and frames; 0 = none.",
-            fp_range=(0.0, 10.0), **ro))
+            fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC), **ro))
         d("read_noise_e", 0.0, describe(
             "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
         d("frames", False, describe(

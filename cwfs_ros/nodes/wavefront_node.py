@@ -36,6 +36,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
+from cwfs_ros.core.blur import MAX_SEEING_FWHM_ARCSEC
 from cwfs_ros.core.corner_pool import (
     CornerJob,
     CornerOutcome,
@@ -206,7 +207,8 @@ class WavefrontNode(Node):
         d("seeing_fwhm_arcsec", 0.0, describe(
             "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
             "lsq and exp solvers take the blur's edge signal out of the difference image (README, "
-            "Accuracy); 0 = not given: no such correction.", fp_range=(0.0, 10.0)))
+            "Accuracy); 0 = not given: no such correction.",
+            fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC)))
         d("pairing_tolerance_s", 0.001, describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
             fp_range=(0.0, 10.0)))
