@@ -269,7 +269,7 @@ class PairGeometry:
     def blur_reference(self, blur_px: float, stamp_shape: tuple[int, int]) -> np.ndarray:
         """The edge signal of an image blur of ``blur_px`` (sigma beyond the pixels) in the
         weighted difference image, for stamps of ``stamp_shape`` (:func:`.blur.blur_reference`;
-        cached; ~50 ms to build, most of it tracing the rays at the vignetting edges)."""
+        cached; ~25 ms to build, most of it the two design donuts; bench_blur_reference.py)."""
         key = (round(float(blur_px), 4), tuple(stamp_shape))
         ref = self._blur_refs.get(key)
         if ref is None:

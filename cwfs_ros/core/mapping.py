@@ -42,9 +42,11 @@ batoid's OPD convention; ``test_estimator`` pins it with ray-traced perturbation
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -466,6 +468,16 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     return (centre, variation), always, sweep, edges, max(rms)
 
 
+def _cached_tile(cache: dict[tuple, Any], size: int, key: tuple,
+                 build: Callable[[], Any]) -> Any:
+    """``cache[key]``, built on first use; when ``size`` tiles are held the oldest goes."""
+    if key not in cache:
+        if len(cache) >= size:
+            cache.pop(next(iter(cache)))
+        cache[key] = build()
+    return cache[key]
+
+
 def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
                   y: np.ndarray, band: str, wavelength_nm: float,
                   field_deg: tuple[float, float], tile_deg: float, op: _FitOperator,
@@ -477,12 +489,8 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
            op)
     if not _tile_wanted(_map_tile_requests, key, (fx, fy)):
         return None
-    if key not in _MAP_TILE_CACHE:
-        if len(_MAP_TILE_CACHE) >= _MAP_TILE_CACHE_SIZE:
-            _MAP_TILE_CACHE.pop(next(iter(_MAP_TILE_CACHE)))
-        _MAP_TILE_CACHE[key] = _map_tile(inst, side, defocus_mm, x, y, band, wavelength_nm,
-                                         tile, tile_deg, op, annulus)
-    entry = _MAP_TILE_CACHE[key]
+    entry = _cached_tile(_MAP_TILE_CACHE, _MAP_TILE_CACHE_SIZE, key, lambda: _map_tile(
+        inst, side, defocus_mm, x, y, band, wavelength_nm, tile, tile_deg, op, annulus))
     if entry is None:
         return None
     (centre, variation), always, sweep, edges, rms = entry
@@ -886,10 +894,10 @@ def _monomials(x: np.ndarray, y: np.ndarray, exponents: np.ndarray) -> np.ndarra
 
 @lru_cache(maxsize=4)
 def _pupil_lattice(obscuration: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                np.ndarray, np.ndarray]:
+                                                np.ndarray, np.ndarray, np.ndarray]:
     """The lattice of :func:`_pupil_apertures` (x, y; the annulus and one step beyond),
-    the monomials' exponents, the pseudo-inverse of their values on it, and each lattice
-    point's right and upper neighbour (index, -1 if off the lattice)."""
+    the monomials' exponents, their values on it (n, k) and its pseudo-inverse, and each
+    lattice point's right and upper neighbour (index, -1 if off the lattice)."""
     t = np.linspace(-1.02, 1.02, _PUPIL_FIT_LATTICE)
     lx, ly = (a.ravel() for a in np.meshgrid(t, t))
     r = np.hypot(lx, ly)
@@ -904,7 +912,7 @@ def _pupil_lattice(obscuration: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
     exponents = np.array([(a, d - a) for d in range(_PUPIL_FIT_DEGREE + 1)
                           for a in range(d + 1)])
     basis = _monomials(lx[on], ly[on], exponents).T
-    return (lx[on], ly[on], exponents, np.linalg.pinv(basis),
+    return (lx[on], ly[on], exponents, basis, np.linalg.pinv(basis),
             np.stack([right.ravel()[on], up.ravel()[on]]))
 
 
@@ -915,7 +923,7 @@ def _pupil_fit_at(inst: Instrument, band: str, wavelength_nm: float,
     polynomials in the pupil at one field, from the traced lattice; None when an aperture is
     not a circle or annulus, a ray fails, or the fit misses its lattice by more than
     _PUPIL_FIT_MAX_RESID_M."""
-    lx, ly, exponents, pinv, _ = _pupil_lattice(float(inst.obscuration))
+    lx, ly, _, basis, pinv, _ = _pupil_lattice(float(inst.obscuration))
     traced = _aperture_positions(*_stop_rays(inst, band, wavelength_nm, field_deg, side,
                                              defocus_mm, lx, ly))
     if traced is None:
@@ -923,7 +931,7 @@ def _pupil_fit_at(inst: Instrument, band: str, wavelength_nm: float,
     aps, pos = traced  # (5, m), (m, 2, n)
     rhs = pos.reshape(-1, lx.size).T  # (n, 2 m)
     coef = pinv @ rhs
-    if np.abs(_monomials(lx, ly, exponents).T @ coef - rhs).max() > _PUPIL_FIT_MAX_RESID_M:
+    if np.abs(basis @ coef - rhs).max() > _PUPIL_FIT_MAX_RESID_M:
         return None
     return aps, coef
 
@@ -934,8 +942,8 @@ def _pupil_apertures_from(obscuration: float, aps: np.ndarray,
     some pupil point can come near: an aperture is left out when every lattice ray passes
     it by more than twice the largest step between neighbouring lattice rays on it (every
     pupil point lies within a lattice cell, so its ray passes too)."""
-    lx, ly, exponents, _, neighbours = _pupil_lattice(obscuration)
-    pos = (coef.T @ _monomials(lx, ly, exponents)).reshape(aps.shape[1], 2, lx.size)
+    lx, _, exponents, basis, _, neighbours = _pupil_lattice(obscuration)
+    pos = (basis @ coef).T.reshape(aps.shape[1], 2, lx.size)
     margin = _edge_margin(pos[:, 0], pos[:, 1], aps[:, :, None])  # (m, n)
     step = np.zeros(len(pos))
     for nb in neighbours:
@@ -970,8 +978,7 @@ def _pupil_tile(inst: Instrument, band: str, wavelength_nm: float, side: str,
     coefs = np.array([f[1] for f in fits])  # (n_nodes, k, 2 m)
     mono = _tile_monomials(u, v)
     poly, *_ = np.linalg.lstsq(mono, coefs.reshape(len(nodes), -1), rcond=None)
-    lx, ly, exponents, _, _ = _pupil_lattice(float(inst.obscuration))
-    basis = _monomials(lx, ly, exponents).T
+    basis = _pupil_lattice(float(inst.obscuration))[3]
     miss = (mono @ poly).reshape(coefs.shape) - coefs
     if np.abs(np.einsum("lk,nkc->nlc", basis, miss)).max() > _PUPIL_TILE_MAX_RESID_M:
         return None
@@ -989,12 +996,9 @@ def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
         key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile,
                float(tile_deg))
         if _tile_wanted(_pupil_tile_requests, key, field_deg):
-            if key not in _PUPIL_TILE_CACHE:
-                if len(_PUPIL_TILE_CACHE) >= _PUPIL_TILE_CACHE_SIZE:
-                    _PUPIL_TILE_CACHE.pop(next(iter(_PUPIL_TILE_CACHE)))
-                _PUPIL_TILE_CACHE[key] = _pupil_tile(inst, band, wavelength_nm, side,
-                                                     defocus_mm, tile, tile_deg)
-            entry = _PUPIL_TILE_CACHE[key]
+            entry = _cached_tile(_PUPIL_TILE_CACHE, _PUPIL_TILE_CACHE_SIZE, key,
+                                 lambda: _pupil_tile(inst, band, wavelength_nm, side,
+                                                     defocus_mm, tile, tile_deg))
             if entry is not None:
                 aps, poly = entry
                 mono = _tile_monomials(*_tile_local(field_deg, tile, tile_deg))
