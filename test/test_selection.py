@@ -269,6 +269,13 @@ def test_corner_from_frames_end_to_end(intra_frame, extra_frame, telescope):
     assert err < 0.5 * np.sqrt(np.mean((truth - design) ** 2)), err
 
 
+def _accepted(intra_frame, extra_frame) -> list[list[StarStamp]]:
+    """The accepted stars of the R00 test frames, intra then extra."""
+    h = load_half_chips()["R00"]
+    return [select_stamps(f.image, h[side], config=_config())[0]
+            for f, side in ((intra_frame, "intra"), (extra_frame, "extra"))]
+
+
 def test_later_pairs_start_warm_and_reach_the_cold_answer(intra_frame, extra_frame):
     """The second pair starts from the first one's departure, converges in fewer outer
     iterations than the configured 14, and lands where a start from zero does."""
@@ -278,10 +285,8 @@ def test_later_pairs_start_warm_and_reach_the_cold_answer(intra_frame, extra_fra
     assert warm.pairs[1].iterations < warm.pairs[0].iterations == 14
     # It stopped early because it met the tolerance, and says so.
     assert warm.pairs[1].converged
-    h = load_half_chips()["R00"]
-    stars = [select_stamps(f.image, h[side], config=_config())[0]
-             for f, side in ((intra_frame, "intra"), (extra_frame, "extra"))]
-    cold = estimate_pairs(pair_stars(*stars), EstimatorSettings(solver="lsq"),
+    cold = estimate_pairs(pair_stars(*_accepted(intra_frame, extra_frame)),
+                          EstimatorSettings(solver="lsq"),
                           warm_start=False)
     assert not any(p.warm_start for p in cold)
     for w, c in zip(warm.pairs, cold, strict=True):
@@ -293,9 +298,7 @@ def test_an_unexpected_error_drops_its_pair_only(intra_frame, extra_frame, monke
     pair's 'internal_error', named; the corner's other pairs are still estimated."""
     import cwfs_ros.core.estimator as E
 
-    h = load_half_chips()["R00"]
-    stars = [select_stamps(f.image, h[side], config=_config())[0]
-             for f, side in ((intra_frame, "intra"), (extra_frame, "extra"))]
+    stars = _accepted(intra_frame, extra_frame)
     real = E.estimate_wavefront
     calls = []
 
