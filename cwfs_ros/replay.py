@@ -12,8 +12,8 @@ order and runs, in this process, exactly what the live graph runs on them:
   :func:`~cwfs_ros.core.control.solver_from_params`, one ``step`` per vector (state kept
   between visits, not advanced for ``dry_run``);
 
-with the parameters the nodes would get: their declared defaults, then
-``config/params.yaml``, then each ``--params`` file (``ros__parameters`` keyed by node name or
+with the parameters the nodes would get: ``config/params.yaml`` (also their declared
+defaults), then each ``--params`` file (``ros__parameters`` keyed by node name or
 ``/**``, nested keys flattened to dotted names, as rcl reads them). All four corners are
 estimated whatever the ``corners`` parameter says (a bag may come from several wavefront_node
 processes). Receive times and the pairing / visit timeouts use the bag timestamps (receive
@@ -50,8 +50,6 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
-    "OFC_DEFAULTS",
-    "WAVEFRONT_DEFAULTS",
     "Comparison",
     "CornerRow",
     "DofRow",
@@ -65,23 +63,6 @@ __all__ = [
 _CORNERS = ("R00", "R04", "R40", "R44")
 _SIDES = ("intra", "extra")
 N_DOF = 50
-
-# The parameters replay uses, with the defaults wavefront_node / ofc_node declare (what a node
-# gets for a parameter no YAML file sets). Only the ones that change the numbers are listed.
-WAVEFRONT_DEFAULTS: dict[str, Any] = {
-    "instrument": "lsst", "band": "r", "solver": "exp", "outer_iterations": 0, "pad_px": 0,
-    "seeing_fwhm_arcsec": 0.0,
-    "pairing_tolerance_s": 0.001, "visit_timeout_s": 2.0, "sensor_config": "",
-    **{f"sensors.{c}.{s}.{k}": v for c in _CORNERS for s in _SIDES
-       for k, v in (("rot90", 0), ("flip", "none"))},
-}
-OFC_DEFAULTS: dict[str, Any] = {
-    "band": "r", "matrix_source": "bundled", "method": "tsvd", "n_modes": 12, "alpha": 1e-3,
-    "weights": "range-fwhm", "kp": 0.18, "ki": 0.022, "dof_mask": [True] * N_DOF,
-    "allow_partial": False, "max_step_scale": 1.0, "clip_to_range": True,
-    "max_condition": 1e6, "dry_run": False,
-}
-
 
 def image_topic(corner: str, side: str) -> str:
     return f"/aos/wfs/{corner}/{side}/image"
@@ -99,9 +80,9 @@ SIM_TRUTH_TOPIC = "/aos/sim/truth"
 
 
 # ----------------------------------------------------------------------------- parameters
-def node_parameters(node: str, params_files: Sequence[str | Path] = (), *,
-                    defaults: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A node's parameter values: ``defaults``, config/params.yaml, then each file in order.
+def node_parameters(node: str, params_files: Sequence[str | Path] = ()) -> dict[str, Any]:
+    """A node's parameter values: config/params.yaml (whose values the nodes also declare as
+    their defaults, :func:`cwfs_ros.nodes.common.bundled_declarer`), then each file in order.
 
     A file section applies to the node when its key is the node's name (with or without the
     leading ``/``) or the ``/**`` wildcard; its ``ros__parameters`` are flattened to dotted
@@ -113,7 +94,7 @@ def node_parameters(node: str, params_files: Sequence[str | Path] = (), *,
     from .params import ParamsFileError, read_params_file
 
     files = [default_params_file(), *map(Path, params_files)]
-    out = dict(defaults or {})
+    out: dict[str, Any] = {}
     for f in files:
         try:
             sections = read_params_file(f)  # the launcher's reader: same rules, same errors
@@ -433,8 +414,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
         with open_bag(bag_path) as bag:
             sim = SIM_TRUTH_TOPIC in bag.topics
     params_files = [*([sim_params_file()] if sim else []), *params_files]
-    wf = node_parameters("wavefront_node", params_files, defaults=WAVEFRONT_DEFAULTS)
-    ofc = node_parameters("ofc_node", params_files, defaults=OFC_DEFAULTS)
+    wf = node_parameters("wavefront_node", params_files)
+    ofc = node_parameters("ofc_node", params_files)
     out = Path(out_dir)
     with open_bag(bag_path) as bag:
         images = {image_topic(c, s): (c, s) for c in _CORNERS for s in _SIDES

@@ -53,6 +53,36 @@ def test_default_params_file_declares_what_the_nodes_declare():
     assert raw["ofc_node"]["ros__parameters"]["matrix_source"] == "bundled"
 
 
+def test_nodes_without_a_params_file_start_with_its_values(ros_context):
+    """A node built with no parameter file (a test, an embedding program) declares the
+    values of config/params.yaml, read here from the file itself: wavefront_node used to
+    declare solver exp beside the file's lsq.  Every declared name is in the file."""
+    pytest.importorskip("rclpy")
+    yaml = pytest.importorskip("yaml")
+    from rclpy.parameter import Parameter
+
+    from cwfs_ros.nodes.camera_sim_node import CameraSimNode
+    from cwfs_ros.nodes.ofc_node import OfcNode
+    from cwfs_ros.nodes.wavefront_node import WavefrontNode
+    from cwfs_ros.params import flatten
+
+    raw = yaml.safe_load(L.default_params_file().read_text())
+    # workers 1 and one corner: a light pool; both are compared as overridden.
+    small = {"workers": 1, "corners": ["R00"]}
+    for key, cls, over in (("ofc_node", OfcNode, {}), ("camera_sim_node", CameraSimNode, {}),
+                           ("wavefront_node", WavefrontNode, small)):
+        node = cls(context=ros_context,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in over.items()])
+        try:
+            got = {n: node.get_parameter(n).value for n in node._parameters
+                   if n not in ("use_sim_time", "start_type_description_service")}
+        finally:
+            node.destroy_node()
+        want = {**flatten(raw[key]["ros__parameters"]), **over}
+        assert got == want, key
+    assert raw["wavefront_node"]["ros__parameters"]["solver"] == "lsq"
+
+
 def test_fastdds_profile_is_set_unless_already_set(monkeypatch):
     monkeypatch.delenv(L.PROFILE_ENV, raising=False)
     path = L.ensure_fastdds_profile()

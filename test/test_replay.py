@@ -123,9 +123,9 @@ def recorded_run(tmp_path_factory, ros_domain_module):
             n.get_name(): dict(n.get_publisher_names_and_types_by_node(n.get_name(),
                                                                        n.get_namespace()))
             for n in nodes.values()}
-        out["params"] = {name: {p: nodes[name].get_parameter(p).value for p in defaults}
-                         for name, defaults in (("wavefront_node", R.WAVEFRONT_DEFAULTS),
-                                                ("ofc_node", R.OFC_DEFAULTS))}
+        out["params"] = {name: {p: nodes[name].get_parameter(p).value
+                                for p in nodes[name]._parameters}
+                         for name in ("wavefront_node", "ofc_node")}
     finally:
         ctx.try_shutdown()
         th.join(15)
@@ -201,12 +201,12 @@ def test_recording_holds_the_run(recorded_run):
 
 
 def test_replay_parameters_are_the_nodes(recorded_run):
-    """replay resolves the same parameter values the running nodes had (defaults + YAML)."""
-    for node, defaults in (("wavefront_node", R.WAVEFRONT_DEFAULTS),
-                           ("ofc_node", R.OFC_DEFAULTS)):
-        mine = R.node_parameters(node, [recorded_run["overlay"]], defaults=defaults)
+    """replay resolves the same parameter values the running nodes had (YAML files)."""
+    for node in ("wavefront_node", "ofc_node"):
+        mine = R.node_parameters(node, [recorded_run["overlay"]])
         live = recorded_run["params"][node]
-        for name in defaults:
+        assert {"solver", "seeing_fwhm_arcsec", "kp", "dof_mask"} & set(mine)
+        for name in mine:
             a, b = mine[name], live[name]
             if isinstance(b, (list, tuple)) or hasattr(b, "tolist"):
                 a, b = list(a), list(b)

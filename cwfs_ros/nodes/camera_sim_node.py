@@ -55,6 +55,7 @@ from .common import (
     OUTPUT_QOS,
     WARN,
     RejectionCounter,
+    bundled_declarer,
     describe,
     diagnostic_status,
     diagnostics_array,
@@ -156,71 +157,71 @@ class CameraSimNode(Node):
         return self.get_parameter(name).value
 
     def _declare_parameters(self) -> None:
-        d = self.declare_parameter
+        d = bundled_declarer(self, "camera_sim_node")
         ro = {"read_only": True}
-        d("initial_dof", [0.0] * N_DOF, describe(
+        d("initial_dof", describe(
             "Initial telescope state: 50 DoF, ts_ofc order and units [um | deg], batoid_rubin "
             "(DofCorrection) signs.", **ro))
-        d("perturbation_seed", -1, describe(
+        d("perturbation_seed", describe(
             "Seed of a random rigid-body perturbation added to DoF 0-9 at start (-1 = none).",
             int_range=(-1, 2**31 - 1), **ro))
-        d("perturbation_scale", 1.0, describe(
+        d("perturbation_scale", describe(
             "Scale of that perturbation: normal(0,1) x scale x [8, 150, 150, 0.005, 0.005] "
             "[um, um, um, deg, deg] per hexapod.", fp_range=(0.0, 100.0), **ro))
-        d("band", "r", describe("Filter band of the optical model.",
+        d("band", describe("Filter band of the optical model.",
                                 constraints="u | g | r | i | z | y", **ro))
-        d("wavelength_nm", 0.0, describe(
+        d("wavelength_nm", describe(
             "Monochromatic wavelength [nm]; 0 = the band's effective wavelength (r: 622).",
             fp_range=(0.0, 2000.0), **ro))
-        d("visit_period_s", 5.0, describe(
+        d("visit_period_s", describe(
             "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
             "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
-        d("n_photons", 1e6, describe(
+        d("n_photons", describe(
             "Expected photons per donut (unvignetted pupil).", fp_range=(1.0, 1e9), **ro))
-        d("sky_per_pixel", 50.0, describe(
+        d("sky_per_pixel", describe(
             "Sky background [e-/px], added before Poisson noise and subtracted after.",
             fp_range=(0.0, 1e6), **ro))
-        d("offset_px_max", 3.0, describe(
+        d("offset_px_max", describe(
             "Random donut offset in each axis, uniform in +-offset_px_max [px].",
             fp_range=(0.0, 1000.0), **ro))
-        d("npix", 160, describe("Stamp side [px].", int_range=(16, 4096), **ro))
-        d("seeing_fwhm_arcsec", 0.0, describe(
+        d("npix", describe("Stamp side [px].", int_range=(16, 4096), **ro))
+        d("seeing_fwhm_arcsec", describe(
             "Gaussian seeing blur FWHM [arcsec] of every donut, stamps and frames; 0 = none.",
             fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC), **ro))
-        d("read_noise_e", 0.0, describe(
+        d("read_noise_e", describe(
             "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
-        d("frames", False, describe(
+        d("frames", describe(
             "Publish half-chip frames with several stars (random positions and brightness, "
             "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
             "then selects, pairs and combines the donuts.", **ro))
-        d("frame_rows", 2000, describe("Frame rows [px] (frames mode).",
+        d("frame_rows", describe("Frame rows [px] (frames mode).",
                                        int_range=(200, 8192), **ro))
-        d("frame_cols", 1000, describe("Frame columns [px] (frames mode).",
+        d("frame_cols", describe("Frame columns [px] (frames mode).",
                                        int_range=(200, 8192), **ro))
-        d("frame_stars_min", 3, describe("Fewest isolated stars per frame.",
+        d("frame_stars_min", describe("Fewest isolated stars per frame.",
                                          int_range=(0, 50), **ro))
-        d("frame_stars_max", 6, describe("Most isolated stars per frame.",
+        d("frame_stars_max", describe("Most isolated stars per frame.",
                                          int_range=(0, 50), **ro))
-        d("frame_flux_min", 2e5, describe("Photons of the faintest isolated star.",
+        d("frame_flux_min", describe("Photons of the faintest isolated star.",
                                           fp_range=(1.0, 1e9), **ro))
-        d("frame_flux_max", 1e6, describe("Photons of the brightest isolated star.",
+        d("frame_flux_max", describe("Photons of the brightest isolated star.",
                                           fp_range=(1.0, 1e9), **ro))
-        d("frame_blend", True, describe("Add a blended pair to each frame.", **ro))
-        d("frame_faint", True, describe("Add a too-faint star to each frame.", **ro))
-        d("render_workers", 0, describe(
+        d("frame_blend", describe("Add a blended pair to each frame.", **ro))
+        d("frame_faint", describe("Add a too-faint star to each frame.", **ro))
+        d("render_workers", describe(
             "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
             "1 = in the node's render thread). The images do not depend on it.",
             int_range=(0, 64), **ro))
-        d("apply_corrections", True, describe(
+        d("apply_corrections", describe(
             "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
-        d("actuator_noise", 0.0, describe(
+        d("actuator_noise", describe(
             "Relative actuator error: each applied DoF is scaled by (1 + actuator_noise x "
             "normal(0,1)).", fp_range=(0.0, 10.0)))
-        d("render_seed", -1, describe(
+        d("render_seed", describe(
             "Seed of the image noise, offsets and actuator noise (-1 = fresh entropy).",
             int_range=(-1, 2**31 - 2), **ro))
-        d("frame_id", "focal_plane", describe("frame_id of the images and SimTruth.", **ro))
-        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].", read_only=True,
+        d("frame_id", describe("frame_id of the images and SimTruth.", **ro))
+        d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
                                                 fp_range=(0.05, 60.0)))
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:

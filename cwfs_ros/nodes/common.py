@@ -26,7 +26,9 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import lru_cache
+from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -45,6 +47,7 @@ __all__ = [
     "QosEventMonitor",
     "image_qos",
     "RejectionCounter",
+    "bundled_declarer",
     "describe",
     "diagnostic_status",
     "diagnostics_array",
@@ -92,6 +95,35 @@ def describe(description: str, *, read_only: bool = False,
         d.integer_range = [IntegerRange(from_value=int(int_range[0]),
                                         to_value=int(int_range[1]), step=1)]
     return d
+
+
+@lru_cache(maxsize=1)
+def _bundled_params() -> dict[str, dict[str, Any]]:
+    from ..launch import default_params_file
+    from ..params import read_params_file
+
+    return {key.lstrip("/"): values
+            for key, values in read_params_file(default_params_file()).items()}
+
+
+def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescriptor], Any]:
+    """``declare(name, descriptor)`` for ``node``, with the default value taken from the
+    ``section`` of ``config/params.yaml``.
+
+    That file is what every entry point loads, so it is the one place a default is written:
+    a node built without it (a test, an embedding program) starts with the same values as
+    ``cwfs-ros bringup`` (a literal beside each declaration had drifted: wavefront_node
+    declared solver ``exp`` while the file set ``lsq``).  A parameter the file lacks is a
+    KeyError naming it.
+    """
+    values = _bundled_params().get(section, {})
+
+    def declare(name: str, descriptor: ParameterDescriptor) -> Any:
+        if name not in values:
+            raise KeyError(f"config/params.yaml has no default for {section}.{name}")
+        return node.declare_parameter(name, values[name], descriptor)
+
+    return declare
 
 
 def result(ok: bool, reason: str = "") -> SetParametersResult:

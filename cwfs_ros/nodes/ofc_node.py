@@ -39,6 +39,7 @@ from .common import (
     OUTPUT_QOS,
     WARN,
     RejectionCounter,
+    bundled_declarer,
     describe,
     diagnostic_status,
     diagnostics_array,
@@ -101,41 +102,41 @@ class OfcNode(Node):
         return self.get_parameter(name).value
 
     def _declare_parameters(self) -> None:
-        d = self.declare_parameter
-        d("band", "r", describe("Band whose intrinsic (design) wavefront is subtracted.",
+        d = bundled_declarer(self, "ofc_node")
+        d("band", describe("Band whose intrinsic (design) wavefront is subtracted.",
                                 constraints="u | g | r | i | z | y | ref"))
-        d("matrix_source", "bundled", describe(
+        d("matrix_source", describe(
             "Sensitivity matrix: bundled (this project's, from the batoid simulator) or "
             "ts_ofc (Rubin's, converted to the DofCorrection DoF convention).",
             constraints=" | ".join(MATRIX_SOURCES)))
-        d("method", "tsvd", describe("Pseudo-inverse: tsvd (truncated SVD) or tikhonov.",
+        d("method", describe("Pseudo-inverse: tsvd (truncated SVD) or tikhonov.",
                                      constraints="tsvd | tikhonov"))
-        d("n_modes", 12, describe("Singular modes kept by the truncated SVD.",
+        d("n_modes", describe("Singular modes kept by the truncated SVD.",
                                   int_range=(1, C.N_DOF)))
-        d("alpha", 1e-3, describe(
+        d("alpha", describe(
             "Tikhonov regulariser, as a fraction of the largest normalised singular value.",
             fp_range=(1e-9, 1.0)))
-        d("weights", "range-fwhm", describe(
+        d("weights", describe(
             "DoF normalisation weights: range-fwhm (ts_ofc), range (dof.yaml) or none.",
             constraints="range-fwhm | range | none"))
-        d("kp", 0.18, describe("Proportional gain.", fp_range=(0.0, 1.0)))
-        d("ki", 0.022, describe("Integral gain (0 = pure P controller).", fp_range=(0.0, 1.0)))
-        d("dof_mask", [True] * C.N_DOF, describe(
+        d("kp", describe("Proportional gain.", fp_range=(0.0, 1.0)))
+        d("ki", describe("Integral gain (0 = pure P controller).", fp_range=(0.0, 1.0)))
+        d("dof_mask", describe(
             "50 booleans: False DoFs are not used and never move (order of dof.yaml)."))
-        d("allow_partial", False, describe(
+        d("allow_partial", describe(
             "Use the valid corners only when some are invalid (else refuse the visit)."))
-        d("max_step_scale", 1.0, describe(
+        d("max_step_scale", describe(
             "Per-visit step limit as a multiple of dof.yaml's max_step (0 = no limit).",
             fp_range=(0.0, 100.0)))
-        d("clip_to_range", True, describe(
+        d("clip_to_range", describe(
             "Keep the accumulated DoF state within dof.yaml's ranges."))
-        d("max_condition", 1e6, describe(
+        d("max_condition", describe(
             "Refuse when the effective condition number of the inverse exceeds this.",
             fp_range=(1.0, 1e15)))
-        d("dry_run", False, describe(
+        d("dry_run", describe(
             "Compute and publish corrections flagged dry_run, without advancing the state."))
-        d("frame_id", "telescope", describe("frame_id of DofCorrection."))
-        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].", read_only=True,
+        d("frame_id", describe("frame_id of DofCorrection."))
+        d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
                                                 fp_range=(0.05, 60.0)))
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:

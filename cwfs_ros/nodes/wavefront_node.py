@@ -68,6 +68,7 @@ from .common import (
     WARN,
     QosEventMonitor,
     RejectionCounter,
+    bundled_declarer,
     describe,
     diagnostic_status,
     diagnostics_array,
@@ -189,71 +190,71 @@ class WavefrontNode(Node):
         return self.get_parameter(name).value
 
     def _declare_parameters(self) -> None:
-        d = self.declare_parameter
-        d("instrument", "lsst", describe(
+        d = bundled_declarer(self, "wavefront_node")
+        d("instrument", describe(
             "Instrument model: a config/instruments/<name>.yaml name or a path to one."))
-        d("band", "r", describe("Filter band of the optical model.",
+        d("band", describe("Filter band of the optical model.",
                                 constraints="u | g | r | i | z | y"))
-        d("solver", "exp", describe("TIE solver: exp (series expansion), fft, lsq.",
+        d("solver", describe("TIE solver: exp (series expansion), fft, lsq.",
                                     constraints=" | ".join(_SOLVERS)))
-        d("outer_iterations", 0, describe(
+        d("outer_iterations", describe(
             "Outer compensation iterations; 0 = the value of config/algorithm.yaml.",
             int_range=(0, 100)))
-        d("pad_px", 0, describe(
+        d("pad_px", describe(
             "Background padding [px] added around each stamp before estimation (border "
             "median), for stamps cut so tight that the estimator rejects the donut as touching "
             "the edge; 0 = none (160 px corner stamps need none).",
             int_range=(0, 256)))
-        d("seeing_fwhm_arcsec", 0.0, describe(
+        d("seeing_fwhm_arcsec", describe(
             "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
             "lsq and exp solvers take the blur's edge signal out of the difference image (README, "
             "Accuracy); 0 = not given: no such correction.",
             fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC)))
-        d("pairing_tolerance_s", 0.001, describe(
+        d("pairing_tolerance_s", describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
             fp_range=(0.0, 10.0)))
-        d("visit_timeout_s", 2.0, describe(
+        d("visit_timeout_s", describe(
             "How long [s] an image waits for its partner, and a visit for its four corners, "
             "before it is dropped / published with the missing corners invalid (checked "
             "every 0.1 s).",
             fp_range=(0.05, 600.0)))
-        d("workers", 0, describe(
+        d("workers", describe(
             "Worker processes for the corner estimates; 0 = min(#corners, #CPUs).",
             read_only=True, int_range=(0, 64)))
-        d("corners", list(CORNERS), describe(
+        d("corners", describe(
             "Corners served by this instance (subset of R00 R04 R40 R44).", read_only=True))
-        d("assemble", True, describe(
+        d("assemble", describe(
             "Assemble and publish the 76-vector here, subscribing to the CornerWavefront "
             "topics of the corners served elsewhere.", read_only=True))
-        d("sensor_config", "", describe(
+        d("sensor_config", describe(
             "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
             read_only=True))
-        d("frame_id", "focal_plane", describe("frame_id of the published messages."))
-        d("input_mode", "auto", describe(
+        d("frame_id", describe("frame_id of the published messages."))
+        d("input_mode", describe(
             "What the images are: stamps (one donut each, oriented by sensors.*), frames (a "
             "half-chip each with several stars: detection, per-star field, pairing and "
             "combination, oriented by the frames section of sensor_config), or auto (frames "
             "when a side is >= frame_min_side_px).", constraints="auto | stamps | frames"))
-        d("frame_min_side_px", 400, describe(
+        d("frame_min_side_px", describe(
             "With input_mode auto, an image with a side of at least this many pixels is a "
             "frame [px].", int_range=(16, 8192)))
-        d("selection_config", "", describe(
+        d("selection_config", describe(
             "Donut selection YAML for frames; empty = config/selection.yaml.",
             read_only=True))
-        d("image_reliability", "reliable", describe(
+        d("image_reliability", describe(
             "QoS reliability of the image subscriptions: reliable (a lost image loses the "
             "corner's visit) or best_effort (needed to hear a camera that publishes with "
             "sensor_data QoS: a reliable subscription never matches a best-effort "
             "publisher).", constraints="reliable | best_effort", read_only=True))
-        d("diagnostics_period_s", 1.0, describe("Period of /diagnostics [s].",
+        d("diagnostics_period_s", describe("Period of /diagnostics [s].",
                                                 read_only=True, fp_range=(0.05, 60.0)))
         for c in CORNERS:
             for s in SIDES:
-                d(f"sensors.{c}.{s}.rot90", 0, describe(
+                d(f"sensors.{c}.{s}.rot90", describe(
                     f"Quarter turns (numpy.rot90, counter-clockwise) that bring the {c} {s} "
                     "image into the focal-plane frame; applied before the flip.",
                     int_range=(0, 3)))
-                d(f"sensors.{c}.{s}.flip", "none", describe(
+                d(f"sensors.{c}.{s}.flip", describe(
                     f"Flip of the {c} {s} image after the rotation: none, lr (x -> -x) or "
                     "ud (y -> -y).", constraints=" | ".join(FLIPS)))
 
