@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from cwfs_ros.core import load_instrument  # noqa: E402
 from cwfs_ros.core import mapping as mp  # noqa: E402
-from cwfs_ros.core.blur import blur_reference, seeing_sigma_px  # noqa: E402
+from cwfs_ros.core.blur import blur_reference, image_blur_sigma_px  # noqa: E402
 from cwfs_ros.core.estimator import load_algorithm, pair_geometry  # noqa: E402
 from cwfs_ros.sim.render import corner_fields  # noqa: E402
 
@@ -39,8 +39,8 @@ def main() -> None:
     a = ap.parse_args()
     inst = load_instrument("lsst")
     algo = load_algorithm("lsq")
-    blur = float(np.hypot(seeing_sigma_px(a.seeing, inst.pixel_size_um, inst.focal_length_m),
-                          algo.smooth_sigma_px))
+    blur = image_blur_sigma_px(a.seeing, algo.smooth_sigma_px, inst.pixel_size_um,
+                               inst.focal_length_m)
     rng = np.random.default_rng(11)
     fields = corner_fields()
 

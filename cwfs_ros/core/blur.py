@@ -40,7 +40,7 @@ from .errors import ConfigError
 from .mapping import ImageMapping
 
 __all__ = ["FWHM_PER_SIGMA", "MAX_SEEING_FWHM_ARCSEC", "check_seeing", "design_donut",
-           "blur_reference", "seeing_sigma_px"]
+           "blur_reference", "image_blur_sigma_px", "seeing_sigma_px"]
 
 FWHM_PER_SIGMA = float(2.0 * np.sqrt(2.0 * np.log(2.0)))
 _ARCSEC_PER_RAD = 180.0 * 3600.0 / np.pi
@@ -65,6 +65,15 @@ def seeing_sigma_px(seeing_fwhm_arcsec: float, pixel_size_um: float,
     ``pixel / focal length`` (LSST: 0.200 arcsec/px; batoid's 0.1995 at the corners)."""
     arcsec_per_px = _ARCSEC_PER_RAD * pixel_size_um * 1e-6 / focal_length_m
     return float(seeing_fwhm_arcsec) / FWHM_PER_SIGMA / arcsec_per_px
+
+
+def image_blur_sigma_px(seeing_fwhm_arcsec: float, smooth_sigma_px: float,
+                        pixel_size_um: float, focal_length_m: float) -> float:
+    """Gaussian sigma (px) of the images as the estimator compensates them: the seeing
+    (:func:`seeing_sigma_px`) and the estimator's own smoothing, in quadrature.  The pixels'
+    blur is in the design donut itself (:func:`design_donut`)."""
+    return float(np.hypot(seeing_sigma_px(seeing_fwhm_arcsec, pixel_size_um, focal_length_m),
+                          smooth_sigma_px))
 
 
 def design_donut(mapping: ImageMapping, x: np.ndarray, y: np.ndarray, spacing: float,

@@ -42,7 +42,7 @@ from scipy.linalg import solve_triangular
 from scipy.ndimage import distance_transform_edt, gaussian_filter, maximum_filter1d
 
 from ..paths import config_dir
-from .blur import blur_reference, check_seeing, seeing_sigma_px
+from .blur import blur_reference, check_seeing, image_blur_sigma_px
 from .checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
 from .compensation import compensate
 from .donuts import PreparedDonut, prepare_donut
@@ -727,8 +727,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         # seeing (0: none given) the loop is the one every figure before the seeing input
         # was measured with: the model of the pixels and the smoothing alone moved FAM's
         # worst term from 21.4 to 25.1 nm (README, Accuracy).
-        blur_px = float(np.hypot(seeing_sigma_px(seeing_fwhm_arcsec, inst.pixel_size_um,
-                                                 inst.focal_length_m), algo.smooth_sigma_px))
+        blur_px = image_blur_sigma_px(seeing_fwhm_arcsec, algo.smooth_sigma_px,
+                                      inst.pixel_size_um, inst.focal_length_m)
         blur_ref = geom.blur_reference(blur_px, img_in.shape)
 
     jmax = algo.jmax
