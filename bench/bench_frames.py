@@ -194,6 +194,56 @@ def evaluate(trials: list[dict], comb: CombinationConfig) -> dict:
             "n_terms": int(zna.size)}
 
 
+def consistency(trials: list[dict], comb: CombinationConfig, seed: int = 5) -> None:
+    """The pairs-agree test (``max_reduced_chi2``: the kept pairs' scatter, and no rival
+    group among the rejected ones) on every trial's corner as simulated, and on the same
+    corners (those with 4 pairs) with two pairs spoilt: each term of both moved by a normal
+    draw times 3-10 times that pair's noise sigma, either the same draw for both (a shared
+    cause: two groups of two) or one each."""
+    rng = np.random.default_rng(seed)
+    c, f = np.asarray(comb.noise_coefficient_nm), np.asarray(comb.pair_floor_nm)
+    cases: dict[str, list] = {"as simulated": [], "2 spoilt alike": [], "2 spoilt apart": []}
+    for t in trials:
+        ps = t["pairs"]
+        if len(ps) < 2:
+            continue
+        dep = np.array([p["departure"] for p in ps])
+        q = np.array([p["q"] for p in ps])
+        cases["as simulated"].append((t, dep, q))
+        if len(ps) >= 4:
+            sig = np.sqrt((c[None, :] * q[:, None]) ** 2 + f[None, :] ** 2)
+            bad = rng.choice(len(ps), 2, replace=False)
+            for name, alike in (("2 spoilt alike", True), ("2 spoilt apart", False)):
+                d2 = dep.copy()
+                d2[bad] += (rng.normal(size=(1 if alike else 2, dep.shape[1]))
+                            * rng.uniform(3.0, 10.0) * sig[bad])
+                cases[name].append((t, d2, q))
+    limits = (4.0, 9.0, 16.0)
+    print(f"\npairs-agree test (configured max_reduced_chi2 {comb.max_reduced_chi2:g}): "
+          "reduced chi^2 of the kept pairs about their combination, and what each threshold "
+          "refuses (scatter above it, or a rival group among the rejected pairs); RMS error "
+          "vs truth of the corners passed and refused at 9:")
+    for name, rows in cases.items():
+        if not rows:
+            continue
+        chi, refused, err = [], {lim: [] for lim in limits}, []
+        for t, d, q in rows:
+            for lim in limits:
+                cn = combine_pairs(d, q, design_ref_nm=t["design_ref"],
+                                   config=comb.with_overrides(max_reduced_chi2=lim))
+                refused[lim].append(not cn.consistent)
+            chi.append(cn.reduced_chi2)
+            err.append(rms(cn.zernikes_nm - t["truth_ref"]))
+        chi_a, err_a, bad9 = np.array(chi), np.array(err), np.array(refused[9.0])
+        passed = f"{np.mean(err_a[~bad9]):.1f}" if (~bad9).any() else "-"
+        failed = f"{np.mean(err_a[bad9]):.1f}" if bad9.any() else "-"
+        print(f"  {name:15s} {len(rows):3d} corners: chi2 median {np.nanmedian(chi_a):6.2f}, "
+              f"95th pct {np.nanquantile(chi_a, 0.95):6.2f}, max {np.nanmax(chi_a):7.2f}; "
+              "refused at 4 / 9 / 16: "
+              + " / ".join(str(sum(v)) for v in refused.values())
+              + f"; error passed {passed}, refused {failed} nm mean")
+
+
 def parser() -> argparse.ArgumentParser:
     """The command line (bench_frames_timing.py reads its scene defaults)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -351,6 +401,7 @@ def main() -> None:
         print(f"  |error| < 1 sigma: 1 pair {r['cal_1']:.0%}, N pairs {r['cal_n']:.0%} "
               f"(< 2 sigma: {r['cal2_1']:.0%}, {r['cal2_n']:.0%}; {r['n_terms']} terms); median "
               f"sigma {r['unc_1']:.1f} / {r['unc_n']:.1f} nm")
+    consistency(trials, base)
     if a.write_config:
         path = config_dir() / "selection.yaml"
         text = path.read_text()

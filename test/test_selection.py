@@ -208,6 +208,66 @@ def test_combination_rejects_planted_outliers():
     assert np.all(r.uncertainty_nm < 2.0 * sigma / np.sqrt(4))
 
 
+def _pairs_with_noise(rng, n=4, sigma=5.0):
+    truth = np.linspace(-40, 40, 19)
+    cfg = CombinationConfig(noise_coefficient_nm=1000.0, pair_floor_nm=0.0,
+                            max_reduced_chi2=9.0)
+    q = np.full(n, sigma / 1000.0)
+    return truth, truth + rng.normal(0, sigma, (n, 19)), q, cfg
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_combination_pairs_that_agree_pass_the_consistency_test(seed):
+    truth, d, q, cfg = _pairs_with_noise(np.random.default_rng(seed))
+    r = combine_pairs(d, q, config=cfg)
+    # 4 pairs x 19 terms: 57 degrees of freedom, chi2 / dof within ~0.6..1.5 by chance.
+    assert 0.5 < r.reduced_chi2 < 1.6 and r.consistent and not r.fallback
+    # One bad pair of four is rejected, and the rest still agree.
+    d[1] += 80.0
+    r = combine_pairs(d, q, config=cfg)
+    assert r.used.tolist() == [True, False, True, True] and r.consistent
+    assert np.sqrt(np.mean((r.zernikes_nm - truth) ** 2)) < 10.0
+
+
+@pytest.mark.parametrize("seed", [7, 8, 9])
+@pytest.mark.parametrize("alike", [True, False])
+def test_combination_two_bad_pairs_of_four_are_refused_or_rejected(alike, seed):
+    """Two bad pairs of four, 8 sigma off.  Nothing wrong may pass as consistent: either
+    the outlier rejection finds the two good pairs, or the combination is refused.  When
+    the two bad pairs agree with each other (a shared cause) there is no majority, the
+    median sits between good and bad, and it must be refused."""
+    rng = np.random.default_rng(seed)
+    truth, d, q, cfg = _pairs_with_noise(rng)
+    d[[0, 2]] += rng.normal(0, 40.0, (1 if alike else 2, 19))
+    r = combine_pairs(d, q, config=cfg)
+    err = np.sqrt(np.mean((r.zernikes_nm - truth) ** 2))
+    assert not r.consistent or (err < 10.0 and r.used.tolist() == [False, True, False, True])
+    if alike:
+        assert not r.consistent, (r.reduced_chi2, r.fallback, r.used)
+        # The same numbers with the test off pass, wrong by tens of nm.
+        off = combine_pairs(d, q, config=cfg.with_overrides(max_reduced_chi2=0.0))
+        assert off.consistent
+        assert np.sqrt(np.mean((off.zernikes_nm - truth) ** 2)) > 10.0
+
+
+def test_inconsistent_pairs_make_the_corner_invalid(intra_frame, extra_frame):
+    """The corner is refused, with the reason and the numbers, when its pairs disagree
+    beyond the threshold (here set so low that any two real pairs do), and nothing of it
+    reaches the published outcome."""
+    from cwfs_ros.core.corner_pool import frame_outcome
+
+    strict = SelectionConfig(detection=_config().detection,
+                             combination=CombinationConfig(max_reduced_chi2=1e-9))
+    res = estimate_corner_frames(intra_frame.image, extra_frame.image, corner="R00",
+                                 settings=EstimatorSettings(solver="lsq"), config=strict)
+    assert not res.valid and res.reason == "inconsistent_pairs"
+    assert "2 star pairs kept (0, 1) disagree" in res.status and "reduced chi^2" in res.status
+    assert res.reduced_chi2 > 1e-9
+    out = frame_outcome(res)
+    assert not out.valid and out.reason == "inconsistent_pairs"
+    assert np.all(np.isnan(out.zernikes_nm))
+
+
 def test_combination_single_pair_uses_noise_model():
     cfg = CombinationConfig(noise_coefficient_nm=2000.0, pair_floor_nm=3.0,
                             common_floor_nm=1.0)

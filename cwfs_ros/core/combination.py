@@ -67,6 +67,13 @@ class CombinationConfig:
             (64 % measured); ``bench/bench_frames.py --write-config`` fits the factor that
             makes 68 % of the calibration trials' errors fall within 1 sigma.  A single
             pair's model uncertainty is left as it is.
+        max_reduced_chi2: the pairs kept must agree: their scatter about the combination,
+            in units of their noise model (the reduced chi^2 over every kept term), above
+            this makes the combination ``consistent=False``, for the caller to refuse; so
+            does an ``ambiguous`` one (the pairs rejected as outliers hold a group as large
+            as the one kept that agrees as well).  Two bad pairs among four defeat the
+            outlier rejection: the median is then between good and bad, and the two pairs
+            kept may be one of each, or the two bad ones.  0 = no such test.
     """
 
     noise_coefficient_nm: tuple[float, ...] = (2000.0,) * N_TERMS
@@ -77,6 +84,7 @@ class CombinationConfig:
     prior_dof: float = 3.0
     max_iter: int = 3
     multi_pair_scale: float = 1.0
+    max_reduced_chi2: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("noise_coefficient_nm", "pair_floor_nm", "common_floor_nm"):
@@ -91,6 +99,10 @@ class CombinationConfig:
                               f"{self.multi_pair_scale!r}")
         if not (isinstance(self.prior_dof, (int, float)) and self.prior_dof >= 0):
             raise ConfigError(f"combination: prior_dof must be >= 0, got {self.prior_dof!r}")
+        if not (isinstance(self.max_reduced_chi2, (int, float))
+                and self.max_reduced_chi2 >= 0):
+            raise ConfigError(f"combination: max_reduced_chi2 must be >= 0 (0 = off), got "
+                              f"{self.max_reduced_chi2!r}")
         if not isinstance(self.max_iter, int) or self.max_iter < 1:
             raise ConfigError(f"combination: max_iter must be an integer >= 1, got "
                               f"{self.max_iter!r}")
@@ -116,6 +128,18 @@ class CombinedEstimate:
         used: (n,) bool, pair k contributed (not rejected as an outlier pair).
         term_used: (n, 19) bool, pair k contributed to term j.
         pair_chi: (n,) robust rms normalised residual of each pair over the terms.
+        reduced_chi2: scatter of the kept pairs about the combination in units of their
+            noise model: sum over the kept terms of ``((d_kj - mean_j) / sigma_kj)^2``
+            divided by its degrees of freedom, ``sum_j (n_j - 1)``; ~1 for pairs that
+            agree as the noise model says; NaN with fewer than two pairs.
+        fallback: the whole-pair clip left fewer than two pairs, so the two most
+            consistent were kept.
+        ambiguous: the pairs rejected as outliers, combined on their own, keep as many
+            pairs as this combination did, within ``max_reduced_chi2`` of each other: two
+            groups that each agree and not with each other, and no majority to choose
+            (only evaluated when that test is on).
+        consistent: not ``ambiguous``, and ``reduced_chi2`` within the configured
+            ``max_reduced_chi2`` (or that test is off; one pair passes it).
     """
 
     zernikes_nm: np.ndarray
@@ -124,6 +148,10 @@ class CombinedEstimate:
     used: np.ndarray
     term_used: np.ndarray
     pair_chi: np.ndarray
+    reduced_chi2: float = float("nan")
+    fallback: bool = False
+    ambiguous: bool = False
+    consistent: bool = True
 
 
 def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
@@ -163,6 +191,7 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     used = finite.copy()
     term_used = np.repeat(used[:, None], N_TERMS, axis=1)
     chi = np.zeros(n)
+    fallback = False
     if used.sum() >= 3:
         for _ in range(cfg.max_iter):
             # Robust centre: the median of the pairs still in (a planted outlier cannot drag
@@ -175,7 +204,8 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
             # its own below, it must not throw out the pair's other 18.
             chi = np.median(np.abs(np.where(np.isfinite(r), r, 1e6)), axis=1) / 0.6745
             new_used = finite & (chi <= cfg.pair_clip)
-            if new_used.sum() < 2:  # keep the two most consistent pairs rather than none
+            fallback = bool(new_used.sum() < 2)
+            if fallback:  # keep the two most consistent pairs rather than none
                 keep = np.argsort(chi)[:2]
                 new_used = np.zeros(n, bool)
                 new_used[keep] = finite[keep]
@@ -209,7 +239,20 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     if not used.any():
         z = np.full(N_TERMS, np.nan)
         unc = np.full(N_TERMS, np.nan)
-    return CombinedEstimate(z, unc, int(used.sum()), used, term_used, chi)
+    dof_all = int(dof.sum())
+    red = float(np.nansum(resid2) / dof_all) if dof_all > 0 else float("nan")
+    ambiguous = False
+    rejected = np.flatnonzero(finite & ~used)
+    if cfg.max_reduced_chi2 > 0 and used.sum() >= 2 and rejected.size >= used.sum():
+        # A rival: the rejected pairs, combined on their own (the same rules, recursively
+        # on a smaller set), keep as many pairs that agree as well as the kept ones do.
+        rival = combine_pairs(d[rejected], q[rejected], config=cfg)
+        ambiguous = bool(rival.n_pairs >= used.sum()
+                         and rival.reduced_chi2 <= cfg.max_reduced_chi2)
+    consistent = not (cfg.max_reduced_chi2 > 0
+                      and (ambiguous or red > cfg.max_reduced_chi2))
+    return CombinedEstimate(z, unc, int(used.sum()), used, term_used, chi, red, fallback,
+                            ambiguous, consistent)
 
 
 def fit_noise_model(errors_nm: np.ndarray, noise_scale: np.ndarray,

@@ -371,7 +371,8 @@ class CornerFrameResult:
 
     Attributes:
         corner: raft name.
-        valid: at least one pair contributed.
+        valid: at least one pair contributed, and the pairs kept agree within their noise
+            model (``combination.max_reduced_chi2``).
         status: ``"ok"`` or ``"<reason>: <explanation>"``; ``reason`` the tag alone.
         zernikes_nm: (19,) Z4..Z22 (nm) at ``field_deg`` (NaN when not valid).
         uncertainty_nm: (19,) one-sigma per term (nm).
@@ -381,6 +382,9 @@ class CornerFrameResult:
         detections: ``{"intra": (...), "extra": (...)}`` every detected donut and status.
         timing_ms: ``detect``, ``estimate``, ``combine``, ``total`` wall times.
         solver: TIE solver used.
+        reduced_chi2: the kept pairs' scatter about their combination in units of their
+            noise model (:attr:`.combination.CombinedEstimate.reduced_chi2`; NaN for fewer
+            than two pairs).
     """
 
     corner: str
@@ -398,6 +402,7 @@ class CornerFrameResult:
     solver: str = ""
     worker_pid: int = 0
     noll: tuple[int, ...] = _NOLL
+    reduced_chi2: float = float("nan")
 
     @property
     def caustic(self) -> bool:
@@ -417,11 +422,14 @@ class CornerFrameResult:
 
     def summary(self) -> str:
         """One line for a ``CornerWavefront.status``: the status, then what was dropped,
-        e.g. ``"ok: 3 pairs; dropped 1 caustic; rejected 2 blended, 1 too_faint"``."""
+        e.g. ``"ok: 3 pair(s) (reduced chi2 0.91); dropped 1 caustic; rejected 2 blended,
+        1 too_faint"`` (the chi2 of :attr:`reduced_chi2`, with two pairs or more)."""
         dropped = {k: v for k, v in self.rejected_counts().items()
                    if k in ("caustic", "outlier") or k not in _DONUT_REASONS}
         rejected = {k: v for k, v in self.rejected_counts().items() if k in _DONUT_REASONS}
         parts = [f"{self.status}: {self.n_pairs} pair(s)" if self.valid else self.status]
+        if self.valid and np.isfinite(self.reduced_chi2):
+            parts[0] += f" (reduced chi2 {self.reduced_chi2:.2f})"
         if dropped:
             parts.append("dropped " + ", ".join(f"{v} {k}" for k, v in sorted(dropped.items())))
         if rejected:
@@ -509,7 +517,8 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
             comb.n_pairs if comb is not None else 0, ref, tuple(res), dets,
             {"detect": (t1 - t0) * 1e3, "estimate": (t2 - t1) * 1e3,
              "combine": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3},
-            settings.solver, os.getpid())
+            settings.solver, os.getpid(),
+            reduced_chi2=comb.reduced_chi2 if comb is not None else float("nan"))
 
     if not st_in or not st_ex:
         empty = [(s, dets) for s, st, dets in (("intra", st_in, det_in),
@@ -529,6 +538,18 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
                          config=cfg.combination)
     used = iter(comb.used.tolist())
     res = [p if p.status != "ok" else _with_used(p, next(used)) for p in results]
+    if comb.n_pairs > 0 and not comb.consistent:
+        # Not a correction to act on: the stars of one sensor see nearly the same departure,
+        # so pairs that disagree far beyond their noise mean some are bad, and with two bad
+        # of four the outlier rejection cannot tell which (README, Frames).
+        kept = ", ".join(str(p.index) for p in res if p.used)
+        why = (f"the {comb.n_pairs} star pairs kept ({kept}) disagree: their scatter is "
+               f"{np.sqrt(comb.reduced_chi2):.1f}x their noise model (reduced chi^2 "
+               f"{comb.reduced_chi2:.1f} > {cfg.combination.max_reduced_chi2:g})")
+        if comb.ambiguous:
+            why = (f"the star pairs fall in two groups that each agree and not with each "
+                   f"other ({comb.n_pairs} kept: {kept}), and no majority to choose")
+        return done(False, "inconsistent_pairs", why, comb, res)
     return done(comb.n_pairs > 0, "no_valid_pair", "every pair was rejected as an outlier",
                 comb, res)
 
