@@ -219,10 +219,12 @@ def consistency(trials: list[dict], comb: CombinationConfig, seed: int = 5) -> N
                             * rng.uniform(3.0, 10.0) * sig[bad])
                 cases[name].append((t, d2, q))
     limits = (4.0, 9.0, 16.0)
+    at = comb.max_reduced_chi2 if comb.max_reduced_chi2 > 0 else 4.0
+    limits = tuple(sorted({*limits, at}))
     print(f"\npairs-agree test (configured max_reduced_chi2 {comb.max_reduced_chi2:g}): "
           "reduced chi^2 of the kept pairs about their combination, and what each threshold "
           "refuses (scatter above it, or a rival group among the rejected pairs); RMS error "
-          "vs truth of the corners passed and refused at 9:")
+          f"vs truth of the corners passed and refused at {at:g}:")
     for name, rows in cases.items():
         if not rows:
             continue
@@ -234,12 +236,12 @@ def consistency(trials: list[dict], comb: CombinationConfig, seed: int = 5) -> N
                 refused[lim].append(not cn.consistent)
             chi.append(cn.reduced_chi2)
             err.append(rms(cn.zernikes_nm - t["truth_ref"]))
-        chi_a, err_a, bad9 = np.array(chi), np.array(err), np.array(refused[9.0])
-        passed = f"{np.mean(err_a[~bad9]):.1f}" if (~bad9).any() else "-"
-        failed = f"{np.mean(err_a[bad9]):.1f}" if bad9.any() else "-"
+        chi_a, err_a, bad = np.array(chi), np.array(err), np.array(refused[at])
+        passed = f"{np.mean(err_a[~bad]):.1f}" if (~bad).any() else "-"
+        failed = f"{np.mean(err_a[bad]):.1f}" if bad.any() else "-"
         print(f"  {name:15s} {len(rows):3d} corners: chi2 median {np.nanmedian(chi_a):6.2f}, "
               f"95th pct {np.nanquantile(chi_a, 0.95):6.2f}, max {np.nanmax(chi_a):7.2f}; "
-              "refused at 4 / 9 / 16: "
+              "refused at " + " / ".join(f"{v:g}" for v in limits) + ": "
               + " / ".join(str(sum(v)) for v in refused.values())
               + f"; error passed {passed}, refused {failed} nm mean")
 

@@ -29,6 +29,7 @@ from cwfs_ros.core.selection import (
     StarStamp,
     estimate_corner_frames,
     estimate_pairs,
+    load_selection_config,
     pair_stars,
     run_corner_frame_job,
     select_stamps,
@@ -248,6 +249,22 @@ def test_combination_two_bad_pairs_of_four_are_refused_or_rejected(alike, seed):
         off = combine_pairs(d, q, config=cfg.with_overrides(max_reduced_chi2=0.0))
         assert off.consistent
         assert np.sqrt(np.mean((off.zernikes_nm - truth) ** 2)) > 10.0
+
+
+def test_the_shipped_noise_model_refuses_two_alike_bad_pairs_and_passes_good_ones():
+    """config/selection.yaml as shipped (lsq): four pairs drawn from its own noise model
+    at the frames' median noise scale pass; the same with two pairs 8 sigma off alike
+    are refused."""
+    comb = load_selection_config(solver="lsq").combination
+    assert comb.max_reduced_chi2 > 0
+    rng = np.random.default_rng(3)
+    q = np.full(4, 0.0037)
+    sig = np.sqrt((np.asarray(comb.noise_coefficient_nm) * q[:, None]) ** 2
+                  + np.asarray(comb.pair_floor_nm) ** 2)
+    d = rng.normal(size=(4, 19)) * sig
+    assert combine_pairs(d, q, config=comb).consistent
+    d[[1, 3]] += 8.0 * rng.normal(size=19) * sig[1]
+    assert not combine_pairs(d, q, config=comb).consistent
 
 
 def test_inconsistent_pairs_make_the_corner_invalid(intra_frame, extra_frame):
