@@ -44,6 +44,7 @@ from cwfs_ros.core.combination import (  # noqa: E402
     CombinationConfig,
     combine_pairs,
     fit_noise_model,
+    pair_sigma_nm,
 )
 from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
 from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
@@ -201,7 +202,6 @@ def consistency(trials: list[dict], comb: CombinationConfig, seed: int = 5) -> N
     draw times 3-10 times that pair's noise sigma, either the same draw for both (a shared
     cause: two groups of two) or one each."""
     rng = np.random.default_rng(seed)
-    c, f = np.asarray(comb.noise_coefficient_nm), np.asarray(comb.pair_floor_nm)
     cases: dict[str, list] = {"as simulated": [], "2 spoilt alike": [], "2 spoilt apart": []}
     for t in trials:
         ps = t["pairs"]
@@ -211,7 +211,7 @@ def consistency(trials: list[dict], comb: CombinationConfig, seed: int = 5) -> N
         q = np.array([p["q"] for p in ps])
         cases["as simulated"].append((t, dep, q))
         if len(ps) >= 4:
-            sig = np.sqrt((c[None, :] * q[:, None]) ** 2 + f[None, :] ** 2)
+            sig = pair_sigma_nm(q, comb)
             bad = rng.choice(len(ps), 2, replace=False)
             for name, alike in (("2 spoilt alike", True), ("2 spoilt apart", False)):
                 d2 = dep.copy()

@@ -74,13 +74,54 @@ def test_nodes_without_a_params_file_start_with_its_values(ros_context):
         node = cls(context=ros_context,
                    parameter_overrides=[Parameter(k, value=v) for k, v in over.items()])
         try:
-            got = {n: node.get_parameter(n).value for n in node._parameters
-                   if n not in ("use_sim_time", "start_type_description_service")}
+            names = [n for n in node._parameters
+                     if n not in ("use_sim_time", "start_type_description_service")]
+            got = {n: node.get_parameter(n).value for n in names}
+            ranged = {n: (bool(d.floating_point_range), bool(d.integer_range))
+                      for n, d in zip(names, node.describe_parameters(names), strict=True)}
         finally:
             node.destroy_node()
         want = {**flatten(raw[key]["ros__parameters"]), **over}
         assert got == want, key
+        # The declared type follows the descriptor's range (a float range: a float, even
+        # where the file writes an integer), so a later set of either kind is accepted.
+        for n, (fp, integer) in ranged.items():
+            if fp:
+                assert type(got[n]) is float, (key, n, got[n])
+            if integer:
+                assert type(got[n]) is int, (key, n, got[n])
+        assert any(fp for fp, _ in ranged.values()) and any(i for _, i in ranged.values())
     assert raw["wavefront_node"]["ros__parameters"]["solver"] == "lsq"
+
+
+def test_bundled_defaults_are_typed_by_the_descriptor_and_checked(monkeypatch):
+    """An integer in the file for a floating-point parameter is declared as a float; a
+    string where a number is needed (YAML reads 1e6 as one), a float for an integer, or a
+    name the file lacks is a ConfigError naming the file and the key."""
+    pytest.importorskip("rclpy")
+    from cwfs_ros.core.errors import ConfigError
+    from cwfs_ros.nodes import common
+
+    monkeypatch.setattr(common, "_bundled_params", lambda path: {
+        "x_node": {"rate": 5, "big": "1e6", "count": 2.5, "flag": True, "n": 3}})
+    declared: dict = {}
+
+    class Recorder:
+        def declare_parameter(self, name, value, descriptor):
+            declared[name] = value
+
+    d = common.bundled_declarer(Recorder(), "x_node")
+    d("rate", common.describe("a rate", fp_range=(0.0, 10.0)))
+    d("n", common.describe("a count", int_range=(0, 9)))
+    d("flag", common.describe("a switch"))
+    assert declared == {"rate": 5.0, "n": 3, "flag": True}
+    assert type(declared["rate"]) is float
+    for name, desc in (("big", common.describe("b", fp_range=(0.0, 1e9))),
+                       ("count", common.describe("c", int_range=(0, 9))),
+                       ("flag", common.describe("f", fp_range=(0.0, 1.0))),
+                       ("missing", common.describe("m"))):
+        with pytest.raises(ConfigError, match=rf"params\.yaml: x_node\.{name}"):
+            d(name, desc)
 
 
 def test_fastdds_profile_is_set_unless_already_set(monkeypatch):

@@ -30,7 +30,7 @@ import numpy as np
 from .errors import ConfigError
 
 __all__ = ["CombinationConfig", "CombinedEstimate", "combine_pairs", "fit_noise_model",
-           "pair_noise_scale", "N_TERMS"]
+           "pair_noise_scale", "pair_sigma_nm", "N_TERMS"]
 
 N_TERMS = 19  # Z4..Z22
 
@@ -111,6 +111,15 @@ class CombinationConfig:
         return replace(self, **kw)
 
 
+def pair_sigma_nm(noise_scale: np.ndarray, config: CombinationConfig) -> np.ndarray:
+    """(n, 19) the noise model's one-sigma error of each pair's terms (nm):
+    ``sqrt((c_j q_k)^2 + f_j^2)``."""
+    q = np.asarray(noise_scale, dtype=np.float64).reshape(-1, 1)
+    c = np.asarray(config.noise_coefficient_nm)[None, :]
+    f = np.asarray(config.pair_floor_nm)[None, :]
+    return np.sqrt((c * q) ** 2 + f ** 2)
+
+
 def pair_noise_scale(snr_intra: float, snr_extra: float) -> float:
     """q = sqrt(1/SNR_intra^2 + 1/SNR_extra^2): the relative noise of the intensity
     difference the TIE is solved for (both images contribute; §3.4 normalises each)."""
@@ -129,9 +138,10 @@ class CombinedEstimate:
         term_used: (n, 19) bool, pair k contributed to term j.
         pair_chi: (n,) robust rms normalised residual of each pair over the terms.
         reduced_chi2: scatter of the kept pairs about the combination in units of their
-            noise model: sum over the kept terms of ``((d_kj - mean_j) / sigma_kj)^2``
-            divided by its degrees of freedom, ``sum_j (n_j - 1)``; ~1 for pairs that
-            agree as the noise model says; NaN with fewer than two pairs.
+            noise model: the sum over every term of every kept pair (clipped terms too) of
+            ``min(((d_kj - mean_j) / sigma_kj)^2, clip_sigma^2)``, divided by
+            ``19 (n_kept - 1)``; ~1 for pairs that agree as the noise model says; NaN with
+            fewer than two pairs.
         fallback: the whole-pair clip left fewer than two pairs, so the two most
             consistent were kept.
         ambiguous: the pairs rejected as outliers, combined on their own, keep as many
@@ -178,15 +188,12 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     n = d.shape[0]
     design = (np.zeros(N_TERMS) if design_ref_nm is None
               else np.asarray(design_ref_nm, dtype=np.float64).reshape(N_TERMS))
-    c = np.asarray(cfg.noise_coefficient_nm)
-    f = np.asarray(cfg.pair_floor_nm)
     g = np.asarray(cfg.common_floor_nm)
     if n == 0:
         nan = np.full(N_TERMS, np.nan)
         return CombinedEstimate(nan, nan.copy(), 0, np.zeros(0, bool), np.zeros((0, N_TERMS),
                                 bool), np.zeros(0))
-    sig = np.sqrt((c[None, :] * q[:, None]) ** 2 + f[None, :] ** 2)  # (n, 19)
-    sig = np.maximum(sig, 1e-6)
+    sig = np.maximum(pair_sigma_nm(q, cfg), 1e-6)  # (n, 19)
     finite = np.all(np.isfinite(d), axis=1)
     used = finite.copy()
     term_used = np.repeat(used[:, None], N_TERMS, axis=1)
@@ -239,8 +246,16 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     if not used.any():
         z = np.full(N_TERMS, np.nan)
         unc = np.full(N_TERMS, np.nan)
-    dof_all = int(dof.sum())
-    red = float(np.nansum(resid2) / dof_all) if dof_all > 0 else float("nan")
+    # The kept pairs' agreement over all their terms, clipped ones included: a kept pair
+    # whose terms were clipped one by one disagrees as much as one dropped whole (two bad
+    # pairs of four kept with a good one hid that way); each term is capped at clip_sigma,
+    # so that a single wild term still costs one term.
+    n_used = int(used.sum())
+    red = float("nan")
+    if n_used >= 2:
+        r_kept = (d[used] - mean[None, :]) / sig[used]
+        red = float(np.minimum(r_kept ** 2, cfg.clip_sigma ** 2).sum()
+                    / (N_TERMS * (n_used - 1)))
     ambiguous = False
     rejected = np.flatnonzero(finite & ~used)
     if cfg.max_reduced_chi2 > 0 and used.sum() >= 2 and rejected.size >= used.sum():

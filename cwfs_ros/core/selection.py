@@ -480,7 +480,9 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
 
     Returns:
         A :class:`CornerFrameResult`.  No usable pair gives ``valid=False`` with a reason:
-        ``no_donuts`` (a half has no accepted donut) or ``no_valid_pair``.
+        ``no_donuts`` (a half has no accepted donut) or ``no_valid_pair``; pairs that
+        disagree (:attr:`.combination.CombinedEstimate.consistent`) give
+        ``inconsistent_pairs``.  An invalid result's Zernikes and uncertainties are NaN.
 
     Raises:
         ImageError for a frame that is not a finite 2-D array, ConfigError for bad settings.
@@ -512,8 +514,8 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
                                      f"{reason}: {msg}")
         return CornerFrameResult(
             corner, int(stamp_ns), valid, status, "" if valid else reason,
-            comb.zernikes_nm if comb is not None else nan,
-            comb.uncertainty_nm if comb is not None else nan.copy(),
+            comb.zernikes_nm if comb is not None and valid else nan,
+            comb.uncertainty_nm if comb is not None and valid else nan.copy(),
             comb.n_pairs if comb is not None else 0, ref, tuple(res), dets,
             {"detect": (t1 - t0) * 1e3, "estimate": (t2 - t1) * 1e3,
              "combine": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3},

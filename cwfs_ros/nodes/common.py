@@ -97,13 +97,11 @@ def describe(description: str, *, read_only: bool = False,
     return d
 
 
-@lru_cache(maxsize=1)
-def _bundled_params() -> dict[str, dict[str, Any]]:
-    from ..launch import default_params_file
+@lru_cache(maxsize=4)
+def _bundled_params(path: str) -> dict[str, dict[str, Any]]:
     from ..params import read_params_file
 
-    return {key.lstrip("/"): values
-            for key, values in read_params_file(default_params_file()).items()}
+    return {key.lstrip("/"): values for key, values in read_params_file(path).items()}
 
 
 def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescriptor], Any]:
@@ -113,15 +111,32 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
     That file is what every entry point loads, so it is the one place a default is written:
     a node built without it (a test, an embedding program) starts with the same values as
     ``cwfs-ros bringup`` (a literal beside each declaration had drifted: wavefront_node
-    declared solver ``exp`` while the file set ``lsq``).  A parameter the file lacks is a
-    KeyError naming it.
+    declared solver ``exp`` while the file set ``lsq``).  The descriptor's range fixes the
+    type the file's YAML cannot: a number for a floating-point range is declared as a float
+    (``5`` as 5.0: declared as an integer, the parameter would refuse a later 2.5), and a
+    value of the wrong kind (``1e6`` is a string to YAML 1.1) is a ConfigError naming the
+    file and the key, as is a parameter the file lacks.
     """
-    values = _bundled_params().get(section, {})
+    from ..core.errors import ConfigError
+    from ..launch import default_params_file
+
+    path = str(default_params_file())
+    values = _bundled_params(path).get(section, {})
 
     def declare(name: str, descriptor: ParameterDescriptor) -> Any:
+        where = f"{path}: {section}.{name}"
         if name not in values:
-            raise KeyError(f"config/params.yaml has no default for {section}.{name}")
-        return node.declare_parameter(name, values[name], descriptor)
+            raise ConfigError(f"{where} is missing: every declared parameter takes its "
+                              "default from that file")
+        value = values[name]
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if descriptor.floating_point_range:
+            if not number:
+                raise ConfigError(f"{where} must be a number, got {value!r}")
+            value = float(value)
+        elif descriptor.integer_range and not (number and isinstance(value, int)):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return node.declare_parameter(name, value, descriptor)
 
     return declare
 
