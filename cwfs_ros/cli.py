@@ -245,7 +245,8 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
 def _run_demo(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .core.blur import MAX_SEEING_FWHM_ARCSEC
+    from .core.blur import MAX_SEEING_FWHM_ARCSEC, check_seeing
+    from .core.errors import ConfigError
     from .demo import LoopConfig, LoopError, run_closed_loop, write_report
     from .launch import sim_params_file
     from .sim.perturbation import random_perturbation
@@ -254,9 +255,11 @@ def _run_demo(args: argparse.Namespace) -> int:
         raise CliError(f"--wavefront-error must be > 0 nm, got {args.wavefront_error:g}")
     if not args.photons >= 1e3:
         raise CliError(f"--photons must be >= 1000, got {args.photons:g}")
-    if not 0.0 <= args.seeing <= MAX_SEEING_FWHM_ARCSEC:
+    try:
+        check_seeing(args.seeing)  # the estimator's own range check
+    except ConfigError:
         raise CliError(f"--seeing must be in [0, {MAX_SEEING_FWHM_ARCSEC:g}] arcsec, got "
-                       f"{args.seeing:g}")
+                       f"{args.seeing:g}") from None
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         raise CliError(f"--domain-id must be in 0..232, got {args.domain_id}")
     for f in args.params:

@@ -62,7 +62,6 @@ __all__ = [
 
 _CORNERS = ("R00", "R04", "R40", "R44")
 _SIDES = ("intra", "extra")
-N_DOF = 50
 
 def image_topic(corner: str, side: str) -> str:
     return f"/aos/wfs/{corner}/{side}/image"

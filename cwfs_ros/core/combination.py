@@ -240,7 +240,8 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
         scale2 = np.where(weight > 0, (cfg.prior_dof + dof * chi2) / np.maximum(weight, 1e-12),
                           1.0)
     unc = np.sqrt(var_model * scale2 + g ** 2)
-    if used.sum() >= 2:
+    n_used = int(used.sum())
+    if n_used >= 2:
         unc = unc * cfg.multi_pair_scale
     z = mean + design
     if not used.any():
@@ -250,7 +251,6 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     # whose terms were clipped one by one disagrees as much as one dropped whole (two bad
     # pairs of four kept with a good one hid that way); each term is capped at clip_sigma,
     # so that a single wild term still costs one term.
-    n_used = int(used.sum())
     red = float("nan")
     if n_used >= 2:
         r_kept = (d[used] - mean[None, :]) / sig[used]
@@ -258,16 +258,16 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
                     / (N_TERMS * (n_used - 1)))
     ambiguous = False
     rejected = np.flatnonzero(finite & ~used)
-    if cfg.max_reduced_chi2 > 0 and used.sum() >= 2 and rejected.size >= used.sum():
+    if cfg.max_reduced_chi2 > 0 and n_used >= 2 and rejected.size >= n_used:
         # A rival: the rejected pairs, combined on their own (the same rules, recursively
         # on a smaller set), keep as many pairs that agree as well as the kept ones do.
         rival = combine_pairs(d[rejected], q[rejected], config=cfg)
-        ambiguous = bool(rival.n_pairs >= used.sum()
+        ambiguous = bool(rival.n_pairs >= n_used
                          and rival.reduced_chi2 <= cfg.max_reduced_chi2)
     consistent = not (cfg.max_reduced_chi2 > 0
                       and (ambiguous or red > cfg.max_reduced_chi2))
-    return CombinedEstimate(z, unc, int(used.sum()), used, term_used, chi, red, fallback,
-                            ambiguous, consistent)
+    return CombinedEstimate(z, unc, n_used, used, term_used, chi, red, fallback, ambiguous,
+                            consistent)
 
 
 def fit_noise_model(errors_nm: np.ndarray, noise_scale: np.ndarray,

@@ -545,12 +545,13 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
         # so pairs that disagree far beyond their noise mean some are bad, and with two bad
         # of four the outlier rejection cannot tell which (README, Frames).
         kept = ", ".join(str(p.index) for p in res if p.used)
-        why = (f"the {comb.n_pairs} star pairs kept ({kept}) disagree: their scatter is "
-               f"{np.sqrt(comb.reduced_chi2):.1f}x their noise model (reduced chi^2 "
-               f"{comb.reduced_chi2:.1f} > {cfg.combination.max_reduced_chi2:g})")
         if comb.ambiguous:
             why = (f"the star pairs fall in two groups that each agree and not with each "
                    f"other ({comb.n_pairs} kept: {kept}), and no majority to choose")
+        else:
+            why = (f"the {comb.n_pairs} star pairs kept ({kept}) disagree: their scatter is "
+                   f"{np.sqrt(comb.reduced_chi2):.1f}x their noise model (reduced chi^2 "
+                   f"{comb.reduced_chi2:.1f} > {cfg.combination.max_reduced_chi2:g})")
         return done(False, "inconsistent_pairs", why, comb, res)
     return done(comb.n_pairs > 0, "no_valid_pair", "every pair was rejected as an outlier",
                 comb, res)
