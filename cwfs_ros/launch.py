@@ -5,7 +5,8 @@ project's launcher:
 
 * ``cwfs-ros bringup [--sim] [--params FILE] [--ros-args ...]`` runs wavefront_node and
   ofc_node (plus camera_sim_node with ``--sim``) composed in one process on a
-  MultiThreadedExecutor, like a launch file with a component container would;
+  MultiThreadedExecutor (:mod:`cwfs_ros.nodes.executor`: rclpy's, less a busy loop), like a
+  launch file with a component container would;
 * ``cwfs-ros node NAME [--params FILE] [--ros-args ...]`` runs one node;
 * the executables ``wavefront_node`` / ``ofc_node`` (``ros2 run``-style) call
   :func:`run_node_main`.
@@ -179,7 +180,8 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
         return 2
 
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
+
+    from cwfs_ros.nodes.executor import MultiThreadedExecutor
 
     ctx = context
     try:

@@ -112,11 +112,11 @@ def sample_messages():
 def test_record_round_trip(storage, ros_context, tmp_path):
     import rclpy
     from cwfs_msgs.msg import CornerWavefront, DofCorrection
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import Image
 
     from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS
+    from cwfs_ros.nodes.executor import MultiThreadedExecutor
 
     types = {"/aos/wfs/R40/intra/image": Image, "/aos/ofc/dof_correction": DofCorrection,
              "/aos/wfs/R40/wavefront": CornerWavefront}

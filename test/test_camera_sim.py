@@ -17,7 +17,6 @@ sim = pytest.importorskip("cwfs_ros.sim")
 
 from cwfs_msgs.msg import DofCorrection, SimTruth  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -26,6 +25,7 @@ from cwfs_ros.core.visits import CORNERS  # noqa: E402
 from cwfs_ros.nodes.camera_sim_node import RIGID_SCALE, CameraSimNode  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import dof_correction_msg  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 
 NPIX = 160
 FAST = {"visit_period_s": 0.0, "n_photons": 2e5, "npix": NPIX, "render_seed": 7}

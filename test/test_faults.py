@@ -27,12 +27,12 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import image_msg  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.sim import load_corner_geometry, perturbed_telescope  # noqa: E402
 from cwfs_ros.sim.visit import DonutSpec, render_visit  # noqa: E402

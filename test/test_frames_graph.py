@@ -14,12 +14,12 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import CornerWavefront, SimTruth  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from cwfs_ros.nodes.camera_sim_node import CameraSimNode  # noqa: E402
 from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 
 

@@ -20,7 +20,6 @@ from hypothesis import strategies as st
 rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import CornerWavefront  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
@@ -28,6 +27,7 @@ from cwfs_ros.core.corner_pool import CornerJob, EstimatorSettings, run_corner_j
 from cwfs_ros.core.images import ENCODINGS  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import image_msg, image_record_from_msg  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 
 SEC = 1_000_000_000

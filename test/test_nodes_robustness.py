@@ -15,7 +15,6 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -24,6 +23,7 @@ from cwfs_ros.core import control as C  # noqa: E402
 from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import image_msg  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 

@@ -1,0 +1,128 @@
+"""cwfs_ros.nodes.executor.MultiThreadedExecutor: each ready callback goes to the pool once.
+
+rclpy 7.1.6's MultiThreadedExecutor hands a callback that is queued but not started to its
+pool again and again (rclpy issue #1452): measured 266-282 submissions per callback run with
+ofc_node and one client (bench/bench_executor.py), and a spin thread that holds the GIL
+meanwhile. Swapping rclpy's class into ``test_each_callback_submitted_once`` fails it
+(checked 2026-12-02: 13947 submissions for 20 messages).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from conftest import spin_thread, wait_for
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.callback_groups import ReentrantCallbackGroup  # noqa: E402
+from rclpy.task import Future  # noqa: E402
+from std_msgs.msg import Int32  # noqa: E402
+
+from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
+
+
+def counting(ex: MultiThreadedExecutor) -> dict[str, int]:
+    """Count what ``ex`` hands to its thread pool (wraps the pool's ``submit``)."""
+    count = {"n": 0}
+    submit = ex._executor.submit
+
+    def counted(fn, *a, **k):
+        count["n"] += 1
+        return submit(fn, *a, **k)
+
+    ex._executor.submit = counted
+    return count
+
+
+def test_each_callback_submitted_once(ros_context):
+    ex = MultiThreadedExecutor(num_threads=3, context=ros_context)
+    node = rclpy.create_node("exec_once", context=ros_context)
+    pub = node.create_publisher(Int32, "exec_once", OUTPUT_QOS)
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def on_msg(m: Int32) -> None:
+        with lock:
+            got.append(m.data)
+
+    node.create_subscription(Int32, "exec_once", on_msg, OUTPUT_QOS)
+    submitted = counting(ex)
+    ex.add_node(node)
+    thread = spin_thread(ex)
+    thread.start()
+    try:
+        wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+        n = 20
+        for k in range(n):
+            pub.publish(Int32(data=k))
+            wait_for(lambda k=k: len(got) > k, 10, f"message {k}")
+        assert sorted(got) == list(range(n))
+        # One submission per callback run; the executor's own counter agrees with the pool.
+        assert submitted["n"] == n, submitted
+        assert ex.submissions == n
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        thread.join(5)
+
+
+def test_coroutine_callback_resumes_after_await(ros_context):
+    """A coroutine callback parked on an ``await`` is submitted again when it can go on."""
+    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    node = rclpy.create_node("exec_coro", context=ros_context)
+    group = ReentrantCallbackGroup()
+    pub = node.create_publisher(Int32, "exec_coro", OUTPUT_QOS)
+    gate = Future()
+    order: list[str] = []
+
+    async def on_msg(m: Int32) -> None:
+        if m.data == 0:
+            order.append("parked")
+            value = await gate  # the second message opens the gate
+            order.append(f"resumed {value}")
+        else:
+            order.append("opener")
+            gate.set_result(m.data)
+
+    node.create_subscription(Int32, "exec_coro", on_msg, OUTPUT_QOS, callback_group=group)
+    ex.add_node(node)
+    thread = spin_thread(ex)
+    thread.start()
+    try:
+        wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+        pub.publish(Int32(data=0))
+        wait_for(lambda: order == ["parked"], 10, "the first callback parked on its await")
+        pub.publish(Int32(data=7))
+        wait_for(lambda: len(order) == 3, 10, "the parked callback resumed")
+        assert order == ["parked", "opener", "resumed 7"]
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        thread.join(5)
+
+
+def test_callback_exception_reaches_the_spinner(ros_context):
+    """As with rclpy's executor, a callback's exception is raised where the executor spins."""
+    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    node = rclpy.create_node("exec_raise", context=ros_context)
+    pub = node.create_publisher(Int32, "exec_raise", OUTPUT_QOS)
+
+    def on_msg(m: Int32) -> None:
+        raise ValueError(f"bad message {m.data}")
+
+    node.create_subscription(Int32, "exec_raise", on_msg, OUTPUT_QOS)
+    ex.add_node(node)
+    try:
+        wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+        pub.publish(Int32(data=3))
+        with pytest.raises(ValueError, match="bad message 3"):
+            for _ in range(200):
+                ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        node.destroy_node()
