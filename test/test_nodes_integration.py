@@ -29,6 +29,7 @@ from cwfs_ros.core.visits import CORNERS  # noqa: E402
 from cwfs_ros.launch import run_nodes  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import image_msg  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor as ProjectExecutor  # noqa: E402
 
 WL = 622.0
 N_PHOTONS = 5e5
@@ -139,6 +140,8 @@ def system(ros_domain):
 def test_visit_through_both_nodes(visit, system):
     images, truth = visit
     wf, ofc, t = system["nodes"]["wavefront_node"], system["nodes"]["ofc_node"], system["tester"]
+    # bringup spins on the executor without rclpy 7.1.6's busy loop (test_executor.py)
+    assert isinstance(system["executor"], ProjectExecutor)
     # params.yaml and --ros-args reached the nodes
     assert wf.get_parameter("visit_timeout_s").value == 4.0
     assert ofc.get_parameter("matrix_source").value == "bundled"
