@@ -1,19 +1,31 @@
 """The executor the composed nodes spin on: rclpy's MultiThreadedExecutor, less a busy loop.
 
-Why not rclpy's own: in rclpy 7.1.6 (the newest Jazzy wheel on PyPI) the executor's scan of
-its in-progress tasks yields a callback that has been handed to the thread pool but has not
-started yet (it is neither executing nor done). ``MultiThreadedExecutor`` then submits it
-again and, since it found work, does not wait on the wait set: the spin thread loops, holding
-the GIL, until a worker gets the GIL to start the callback (rclpy issue #1452, fixed upstream
-after 7.1.6). Measured on the 2-core VM (2026-12-02), ofc_node and one client in one process,
-40 messages at 10 Hz: the process used 21 s of CPU in 19 s, the client's 0.1 s sleeps
-overran by up to 3 s, and one ``publish`` of a correction took 1.5 s. With this class: the
-sleeps keep time and the process is idle between messages (``bench/bench_executor.py``).
+Why not rclpy's own: in rclpy 7.1.6 (the newest Jazzy wheel on PyPI, pinned in
+``requirements/ros.txt``) the executor's scan of its in-progress tasks yields a callback
+that has been handed to the thread pool but has not started yet (it is neither executing
+nor done), and its wait set returns at once while that callback's message is still untaken
+(measured by a reviewer: ~8,000 such empty waits for 20 messages; the subscription's QoS
+event handlers keep reporting ready). So ``MultiThreadedExecutor`` submits the callback
+again and again, and the spin thread loops holding the GIL until a worker gets the GIL to
+start it (rclpy issue #1452, fixed upstream after 7.1.6). Measured on the 2-core VM
+(2026-12-02, ``bench/bench_executor.py``: ofc_node and one client in one process, 40
+messages at 10 Hz): 140-389 pool submissions per callback run, 4.7-16.6 s of CPU for a 4-s
+burst, the client's 0.1 s sleeps overrunning by up to 2.3 s and corrections arriving up to
+2.7 s late; in one run one ``publish`` by ofc_node took 1.5 s. With this class: one
+submission per callback, 0.2 s of CPU, the sleeps keep time and the latency stays below
+16 ms.
 
 This class hands each ready callback to the pool once. When the scan yields one that is still
 queued, the spin thread waits (GIL released) for up to :data:`QUEUED_WAIT_S` for a worker to
-take it instead of queueing it again. Everything else (callback groups, coroutine callbacks
-resumed after an ``await``, exceptions raised in the spin thread) is rclpy's own behaviour.
+take it instead of queueing it again, and asks for one more scan when that submission ends
+(a coroutine callback woken meanwhile is then resumed). A coroutine callback parked on an
+``await`` is submitted again each time it can go on, as in rclpy. Callback groups, and
+exceptions raised in the spin thread, are rclpy's own behaviour.
+
+The class overrides an rclpy internal (``_spin_once_impl``) and reads two more
+(``_executor``, the pool; the task scan): ``test_executor.test_written_for_this_rclpy``
+stops the suite when the pinned rclpy changes, so that this is checked again (a newer rclpy
+may carry the upstream fix, and then this class can go).
 """
 
 from __future__ import annotations
@@ -21,6 +33,7 @@ from __future__ import annotations
 import concurrent.futures
 from collections.abc import Callable
 
+from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
 from rclpy.executors import (
     ConditionReachedException,
     ExternalShutdownException,
@@ -31,7 +44,10 @@ from rclpy.executors import MultiThreadedExecutor as _RclpyMultiThreadedExecutor
 from rclpy.task import Task
 from rclpy.timer import Timer
 
-__all__ = ["QUEUED_WAIT_S", "MultiThreadedExecutor"]
+__all__ = ["QUEUED_WAIT_S", "RCLPY_VERSION", "MultiThreadedExecutor"]
+
+# The rclpy release whose internals this class was written against (see the module doc).
+RCLPY_VERSION = "7.1.6"
 
 # How long the spin thread sleeps on a queued callback before it looks again. Short against
 # any callback's latency budget; long enough that the loop costs nothing.
@@ -51,6 +67,14 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
         self._queued: dict[Task, concurrent.futures.Future] = {}
         self.submissions = 0
 
+    def _wake_after(self, _future: concurrent.futures.Future) -> None:
+        """``wake()`` from a pool thread; a no-op once the executor is shut down (its guard
+        condition is then destroyed, possibly while this runs)."""
+        try:
+            self.wake()
+        except (AttributeError, InvalidHandle, RCLError):
+            pass
+
     def _spin_once_impl(self, timeout_sec: float | Timer | None = None,
                         wait_condition: Callable[[], bool] = lambda: False) -> None:
         try:
@@ -61,13 +85,17 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
             return
         pending = self._queued.get(handler)
         if pending is not None and not pending.done():
-            # Submitted and not yet started (a running task is not yielded): let a worker
-            # take it. A coroutine task that ran up to an ``await`` has a done submission
-            # and is submitted again below, as rclpy does.
+            # Submitted and not yet started (a running task is not yielded), or a run just
+            # ending: let a worker take it. If a coroutine task is woken while its last run
+            # is still ending, that wake-up is spent here, so scan once more when the run
+            # ends (rclpy's second submission resumed it instead). A coroutine task parked on
+            # an ``await`` has a done submission and is submitted again below, as in rclpy.
+            pending.add_done_callback(self._wake_after)
             concurrent.futures.wait([pending], timeout=QUEUED_WAIT_S)
         else:
             self._queued[handler] = self._executor.submit(handler)
             self.submissions += 1
-        for task in [t for t in self._queued if t.done()]:
+        for task in [t for t in self._queued if t.done() or t.cancelled()]:
             del self._queued[task]
-            task.result()  # raise a callback's exception in the spin thread, as rclpy does
+            if not task.cancelled():
+                task.result()  # a callback's exception is raised here, as rclpy does
