@@ -12,6 +12,8 @@ from __future__ import annotations
 import importlib.metadata
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 from conftest import spin_thread, wait_for
@@ -41,6 +43,20 @@ def counting(ex: MultiThreadedExecutor) -> dict[str, int]:
     return count
 
 
+@contextmanager
+def spinning(ex: MultiThreadedExecutor, node) -> Iterator[None]:
+    """``node`` on ``ex``, spun in a thread; both shut down afterwards."""
+    ex.add_node(node)
+    thread = spin_thread(ex)
+    thread.start()
+    try:
+        yield
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        thread.join(5)
+
+
 def test_each_callback_submitted_once(ros_context):
     ex = MultiThreadedExecutor(num_threads=3, context=ros_context)
     node = rclpy.create_node("exec_once", context=ros_context)
@@ -54,10 +70,7 @@ def test_each_callback_submitted_once(ros_context):
 
     node.create_subscription(Int32, "exec_once", on_msg, OUTPUT_QOS)
     submitted = counting(ex)
-    ex.add_node(node)
-    thread = spin_thread(ex)
-    thread.start()
-    try:
+    with spinning(ex, node):
         wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
         n = 20
         for k in range(n):
@@ -67,45 +80,39 @@ def test_each_callback_submitted_once(ros_context):
         # One submission per callback run; the executor's own counter agrees with the pool.
         assert submitted["n"] == n, submitted
         assert ex.submissions == n
-    finally:
-        ex.shutdown(timeout_sec=2.0)
-        node.destroy_node()
-        thread.join(5)
 
 
-def test_coroutine_callback_resumes_after_await(ros_context):
-    """A coroutine callback parked on an ``await`` is submitted again when it can go on."""
-    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
-    node = rclpy.create_node("exec_coro", context=ros_context)
-    group = ReentrantCallbackGroup()
-    pub = node.create_publisher(Int32, "exec_coro", OUTPUT_QOS)
+def parked_coroutine_resumes(ex: MultiThreadedExecutor, ros_context, name: str) -> None:
+    """A coroutine callback parks on an ``await`` (message 0); a second message's callback
+    opens the gate; the first must resume with the second's value."""
+    node = rclpy.create_node(name, context=ros_context)
+    pub = node.create_publisher(Int32, name, OUTPUT_QOS)
     gate = Future()
     order: list[str] = []
 
     async def on_msg(m: Int32) -> None:
         if m.data == 0:
             order.append("parked")
-            value = await gate  # the second message opens the gate
-            order.append(f"resumed {value}")
+            order.append(f"resumed {await gate}")
         else:
             order.append("opener")
             gate.set_result(m.data)
 
-    node.create_subscription(Int32, "exec_coro", on_msg, OUTPUT_QOS, callback_group=group)
-    ex.add_node(node)
-    thread = spin_thread(ex)
-    thread.start()
-    try:
+    node.create_subscription(Int32, name, on_msg, OUTPUT_QOS,
+                             callback_group=ReentrantCallbackGroup())
+    with spinning(ex, node):
         wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
         pub.publish(Int32(data=0))
         wait_for(lambda: order == ["parked"], 10, "the first callback parked on its await")
         pub.publish(Int32(data=7))
         wait_for(lambda: len(order) == 3, 10, "the parked callback resumed")
         assert order == ["parked", "opener", "resumed 7"]
-    finally:
-        ex.shutdown(timeout_sec=2.0)
-        node.destroy_node()
-        thread.join(5)
+
+
+def test_coroutine_callback_resumes_after_await(ros_context):
+    """A coroutine callback parked on an ``await`` is submitted again when it can go on."""
+    parked_coroutine_resumes(MultiThreadedExecutor(num_threads=2, context=ros_context),
+                             ros_context, "exec_coro")
 
 
 def test_callback_exception_reaches_the_spinner(ros_context):
@@ -136,7 +143,8 @@ def test_callback_exception_reaches_the_spinner(ros_context):
 def test_parked_coroutine_woken_while_its_run_ends(ros_context):
     """A coroutine callback whose wake-up comes while the pool still finishes its last run
     (a worker descheduled on a loaded machine, made certain here by a 0.3 s pause after every
-    pool job) is resumed without any other event to wake the executor."""
+    pool job: the second message comes within the parked run's pause) is resumed without
+    any other event to wake the executor."""
     ex = MultiThreadedExecutor(num_threads=3, context=ros_context)
     submit = ex._executor.submit
 
@@ -149,35 +157,7 @@ def test_parked_coroutine_woken_while_its_run_ends(ros_context):
         return submit(job)
 
     ex._executor.submit = slow_to_finish
-    node = rclpy.create_node("exec_late_wake", context=ros_context)
-    group = ReentrantCallbackGroup()
-    pub = node.create_publisher(Int32, "exec_late_wake", OUTPUT_QOS)
-    gate = Future()
-    order: list[str] = []
-
-    async def on_msg(m: Int32) -> None:
-        if m.data == 0:
-            order.append("parked")
-            order.append(f"resumed {await gate}")
-        else:
-            order.append("opener")
-            gate.set_result(m.data)
-
-    node.create_subscription(Int32, "exec_late_wake", on_msg, OUTPUT_QOS, callback_group=group)
-    ex.add_node(node)
-    thread = spin_thread(ex)
-    thread.start()
-    try:
-        wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
-        pub.publish(Int32(data=0))
-        wait_for(lambda: order == ["parked"], 10, "the first callback parked on its await")
-        pub.publish(Int32(data=5))  # within the parked run's 0.3 s pause
-        wait_for(lambda: len(order) == 3, 10, "the parked callback resumed")
-        assert order == ["parked", "opener", "resumed 5"]
-    finally:
-        ex.shutdown(timeout_sec=2.0)
-        node.destroy_node()
-        thread.join(5)
+    parked_coroutine_resumes(ex, ros_context, "exec_late_wake")
 
 
 def test_written_for_this_rclpy():

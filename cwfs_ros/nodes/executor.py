@@ -90,7 +90,9 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
             # is still ending, that wake-up is spent here, so scan once more when the run
             # ends (rclpy's second submission resumed it instead). A coroutine task parked on
             # an ``await`` has a done submission and is submitted again below, as in rclpy.
-            pending.add_done_callback(self._wake_after)
+            if not getattr(pending, "_cwfs_wake", False):  # once per submission, not per pass
+                pending._cwfs_wake = True
+                pending.add_done_callback(self._wake_after)
             concurrent.futures.wait([pending], timeout=QUEUED_WAIT_S)
         else:
             self._queued[handler] = self._executor.submit(handler)
