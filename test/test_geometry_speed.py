@@ -179,6 +179,59 @@ def test_distance_transform_dilation_equals_binary_dilation() -> None:
             np.testing.assert_array_equal(_dilate(m, r), binary_dilation(m, structure=disk))
 
 
+def test_region_neighbours_match_a_walk_over_the_grid() -> None:
+    """The padded look-up table gives each region point's four neighbours, and the
+    sentinel where a neighbour is off the region or off the grid (the region touches all
+    four grid edges here)."""
+    from cwfs_ros.core.tie import _region_neighbours
+
+    rng = np.random.default_rng(3)
+    nr, nc = 7, 9
+    grid = rng.random((nr, nc)) < 0.6
+    grid[0, 4] = grid[nr - 1, 2] = grid[3, 0] = grid[5, nc - 1] = True
+    region = np.flatnonzero(grid)
+    m = region.size
+    got = _region_neighbours((nr, nc), region)
+    for k, flat in enumerate(region):
+        r, c = divmod(int(flat), nc)
+        for idx, (dr, dc) in zip(got, ((0, -1), (0, 1), (-1, 0), (1, 0)), strict=True):
+            r2, c2 = r + dr, c + dc
+            inside = 0 <= r2 < nr and 0 <= c2 < nc and grid[r2, c2]
+            want = int(np.flatnonzero(region == r2 * nc + c2)[0]) if inside else m
+            assert idx[k] == want, (r, c, dr, dc)
+
+
+def test_geometry_region_and_common_gram() -> None:
+    """The computation region is the dilated union of both pupils on the candidate points
+    (read from the cached position table), and the Gram matrix over the common pupil (built
+    on first use) is the area average of Z_i Z_j there."""
+    from scipy.ndimage import binary_dilation
+
+    from cwfs_ros.core.zernike import gram_matrix
+
+    inst = load_instrument("lsst")
+    algo = load_algorithm("lsq")
+    g = pair_geometry(inst, "r", WL, tuple(FI0), tuple(FE0), 1.5, algo)
+    n = g.shape[0]
+    # Recomputed from the pupil points alone: the grid of _pupil_grid, the masks on it.
+    sp = g.spacing
+    ax = (np.arange(n) - (n - 1) / 2.0) * sp
+    gx, gy = np.meshgrid(ax, ax)
+    np.testing.assert_allclose(gx.ravel()[g.region], g.x)
+    np.testing.assert_allclose(gy.ravel()[g.region], g.y)
+    union = np.zeros(n * n, bool)
+    union[g.region] = g.mask_intra | g.mask_extra
+    r = algo.boundary_px * algo.oversample
+    yd, xd = np.mgrid[-r:r + 1, -r:r + 1]
+    grown = binary_dilation(union.reshape(n, n), structure=xd * xd + yd * yd <= r * r).ravel()
+    assert np.all(grown[g.region])  # every region point is within the boundary ...
+    outside = np.flatnonzero(grown & ~np.isin(np.arange(n * n), g.region))
+    # ... and every dilated point left out is off the candidate annulus (beyond its extent).
+    assert np.all(np.hypot(gx.ravel()[outside], gy.ravel()[outside]) > 1.08)
+    np.testing.assert_allclose(np.asarray(g.gram_common)[3:22, 3:22],
+                               gram_matrix(g.basis, g.mask_common), rtol=1e-5, atol=1e-6)
+
+
 def test_map_tiles_match_the_direct_trace_and_are_reused() -> None:
     """Field-tiled batoid mapping vs the direct trace at random fields of one half-chip."""
     inst = load_instrument("lsst")

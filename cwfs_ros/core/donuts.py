@@ -83,11 +83,24 @@ def _robust_level(values: np.ndarray) -> tuple[float, float]:
 
 
 @lru_cache(maxsize=8)
-def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    yy, xx = np.indices(shape, dtype=np.float64)
-    yy.setflags(write=False)
-    xx.setflags(write=False)
-    return yy, xx
+def _pixel_axes(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column coordinates (px) of a stamp of ``shape``."""
+    ys, xs = np.arange(shape[0], dtype=np.float64), np.arange(shape[1], dtype=np.float64)
+    ys.setflags(write=False)
+    xs.setflags(write=False)
+    return ys, xs
+
+
+def _centroid(w: np.ndarray, ys: np.ndarray, xs: np.ndarray, tot: float
+              ) -> tuple[float, float]:
+    """Weighted centroid (col, row) from the weights' column and row sums (two small dot
+    products instead of two full-stamp products)."""
+    return float(w.sum(axis=0) @ xs / tot), float(w.sum(axis=1) @ ys / tot)
+
+
+def _radius2(ys: np.ndarray, xs: np.ndarray, cx: float, cy: float) -> np.ndarray:
+    """Squared distance (px^2) of every pixel from (cx, cy), by one broadcast sum."""
+    return ((ys - cy) ** 2)[:, None] + ((xs - cx) ** 2)[None, :]
 
 
 def _light_radius(work: np.ndarray, r2: np.ndarray, r0: float, sigma: float,
@@ -169,14 +182,14 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
     peak = float(np.partition(sub, k)[k])
     if peak <= 0:
         raise FlatImageError(f"{name} image has no flux above its background")
-    yy, xx = _pixel_grid(img.shape)
+    ys, xs = _pixel_axes(img.shape)
     w = np.where(work > 0.3 * peak, work, 0.0)
     tot = w.sum()
-    cx, cy = float((w * xx).sum() / tot), float((w * yy).sum() / tot)
+    cx, cy = _centroid(w, ys, xs, tot)
 
     # Second pass: background from pixels well outside the donut, where there are enough,
     # then the flux-weighted centroid of everything inside the donut's radius.
-    r2 = (xx - cx) ** 2 + (yy - cy) ** 2
+    r2 = _radius2(ys, xs, cx, cy)
     outside = r2 > (outer_radius_px + 2 * _SPILL_PX) ** 2
     sky = border
     if outside.sum() >= max(50, 0.05 * img.size):
@@ -188,25 +201,25 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
     tot = w.sum()
     if tot <= 0:
         raise FlatImageError(f"{name} image has no flux above its background")
-    cx, cy = float((w * xx).sum() / tot), float((w * yy).sum() / tot)
+    cx, cy = _centroid(w, ys, xs, tot)
 
     # The window and the centroid depend on each other: re-centre the window on the
     # centroid of the light inside it, growing it to all the light (_light_radius), until
     # the centroid stops moving.  A window centred on the first, thresholded centroid cuts
     # a comatic donut's far side and pulls the centroid by pixels (3 px at 3 um of Z5).
     for _ in range(10):
-        r2 = (xx - cx) ** 2 + (yy - cy) ** 2
+        r2 = _radius2(ys, xs, cx, cy)
         r_win = _light_radius(work, r2, outer_radius_px + _SPILL_PX, sig, tot)
         w = np.where(r2 <= r_win * r_win, work, 0.0)
         tot = w.sum()
         if tot <= 0:
             raise FlatImageError(f"{name} image has no flux above its background")
-        nx_, ny_ = float((w * xx).sum() / tot), float((w * yy).sum() / tot)
+        nx_, ny_ = _centroid(w, ys, xs, tot)
         moved = np.hypot(nx_ - cx, ny_ - cy)
         cx, cy = nx_, ny_
         if moved < 0.01:
             break
-    r2 = (xx - cx) ** 2 + (yy - cy) ** 2
+    r2 = _radius2(ys, xs, cx, cy)
     inside = r2 <= r_win * r_win
     # Saturation before the flux tests: a donut clipped near its background would otherwise
     # be reported as faint.  A background that is exactly constant means a noise-free

@@ -247,7 +247,6 @@ class PairGeometry:
     mean_gradient_intra: np.ndarray
     mean_gradient_extra: np.ndarray
     build_time_s: float = 0.0
-    gram_common: np.ndarray | None = None
     feedback_l: np.ndarray | None = None
     rim_index: np.ndarray | None = None
     rim_pinv: np.ndarray | None = None
@@ -261,6 +260,14 @@ class PairGeometry:
     # blur_reference() results by (blur, stamp shape): each pair's geometry meets one seeing
     # and one stamp size per visit.
     _blur_refs: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @cached_property
+    def gram_common(self) -> np.ndarray:
+        """Gram matrix of Z1..Z_jmax over the common pupil, built on first use (~1 ms; only
+        the orthonormal feedback and the Gram report read it)."""
+        gram = _common_gram(self.basis, self.mask_common)
+        gram.setflags(write=False)
+        return gram
 
     @cached_property
     def footprints(self) -> PairFootprints | None:
@@ -419,6 +426,24 @@ def _pupil_grid(n: int, spacing: float, extent: float, obscuration: float, jmax:
     return cand, x, y, basis
 
 
+@lru_cache(maxsize=4)
+def _candidate_positions(n: int, spacing: float, extent: float, obscuration: float,
+                         jmax: int) -> np.ndarray:
+    """Position in :func:`_pupil_grid`'s candidate points of each (n, n) grid sample, -1
+    off them: a field's computation region is read from it rather than searched for."""
+    cand = _pupil_grid(n, spacing, extent, obscuration, jmax)[0]
+    lut = np.full(n * n, -1, dtype=np.intp)
+    lut[cand] = np.arange(cand.size)
+    lut.setflags(write=False)
+    return lut
+
+
+def _common_gram(basis: ZernikeBasis, common: np.ndarray) -> np.ndarray:
+    """Gram matrix of Z1..Z_jmax over the common pupil (equal weights: a uniform grid)."""
+    zc = basis.z[:, common].astype(float)
+    return zc @ zc.T / max(int(common.sum()), 1)
+
+
 @lru_cache(maxsize=32)
 def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                   field_intra_deg: tuple[float, float], field_extra_deg: tuple[float, float],
@@ -445,8 +470,9 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
     region2d = _dilate((grid_in | grid_ex).reshape(n, n), algo.boundary_px * algo.oversample)
-    region = np.flatnonzero(region2d.ravel() & np.isin(np.arange(n * n), cand))
-    pos = np.searchsorted(cand, region)
+    cand_pos = _candidate_positions(n, spacing, extent, inst.obscuration, algo.jmax)
+    region = np.flatnonzero(region2d.ravel() & (cand_pos >= 0))
+    pos = cand_pos[region]
 
     def take(m: ImageMapping) -> ImageMapping:
         # float32 halves the memory traffic of the per-iteration compensation; positions
@@ -489,9 +515,8 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                       for m in (m_in, m_ex)))
     # The swapped-pair footprints are built on first use (PairGeometry.footprints).
     footprint_inputs = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
-    zc = basis.z[:, common].astype(float)
-    gram = zc @ zc.T / max(int(common.sum()), 1)
-    feedback_l = np.linalg.cholesky(gram) if algo.feedback_basis == "orthonormal" else None
+    feedback_l = (np.linalg.cholesky(_common_gram(basis, common))
+                  if algo.feedback_basis == "orthonormal" else None)
     r_pupil = np.hypot(x, y)
     annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
     rim_index, rim_pinv = (None, None)
@@ -499,7 +524,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
         rim_index, rim_pinv = _rim_registration((n, n), spacing, region, x, y, annulus,
                                                 mask_in, mask_ex, r_d * algo.oversample,
                                                 algo)
-    for arr in (x, y, mask_in, mask_ex, common, weight, region, gram):
+    for arr in (x, y, mask_in, mask_ex, common, weight, region):
         arr.setflags(write=False)
     def mean_gradient(mask: np.ndarray) -> np.ndarray:
         """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
@@ -513,7 +538,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     return PairGeometry((n, n), spacing, region, x, y, mask_in, mask_ex, common, weight,
                         m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
                         centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
-                        mean_gradient(mask_ex), time.perf_counter() - t0, gram, feedback_l,
+                        mean_gradient(mask_ex), time.perf_counter() - t0, feedback_l,
                         rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
                         footprint_inputs, float(inst.obscuration),
                         tuple(partial(pupil_transmission, inst, side, defocus_mm=defocus_mm,

@@ -191,17 +191,15 @@ def _region_neighbours(shape: tuple[int, int], region: np.ndarray
     """
     nr, nc = shape
     m = region.size
-    lut = np.full(nr * nc, m, dtype=np.intp)
-    lut[region] = np.arange(m)
+    # A look-up table on the grid padded by one sample: every neighbour of a grid point is
+    # then inside it (off-grid ones read the padding), so no bounds tests are needed
+    # (0.9 -> 0.3 ms on a 150 x 150 grid's 9k region points).
+    w = nc + 2
+    lut = np.full((nr + 2) * w, m, dtype=np.intp)
     rows, cols = np.divmod(region, nc)
-    out = []
-    for dr, dc in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-        r2, c2 = rows + dr, cols + dc
-        ok = (r2 >= 0) & (r2 < nr) & (c2 >= 0) & (c2 < nc)
-        idx = np.full(m, m, dtype=np.intp)
-        idx[ok] = lut[r2[ok] * nc + c2[ok]]
-        out.append(idx)
-    return out[0], out[1], out[2], out[3]
+    p = (rows + 1) * w + cols + 1
+    lut[p] = np.arange(m)
+    return lut[p - 1], lut[p + 1], lut[p - w], lut[p + w]
 
 
 def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
@@ -313,8 +311,11 @@ class LeastSquares:
         # inverted, then one float32 product; (B B^T)^-1 only sets how fast the loop
         # reaches its fixed point.  (In float64 with np.linalg.solve on the (jmax, n)
         # right-hand side the set-up cost 13 ms a pair, now ~5 ms; README Frames.)
-        b64 = b.astype(np.float64)
-        gram = b64 @ b64.T
+        # The Gram matrix from the float32 B (single-precision BLAS, no float64 copy of B),
+        # inverted in float64: its rounding, ~5e-8 of the largest element, moves the inverse
+        # by ~6e-6 (condition ~5e4 at the corners), which again only sets the convergence
+        # rate.
+        gram = (b @ b.T).astype(np.float64)
         self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
         np.matmul(-np.linalg.inv(gram).astype(np.float32), b, out=self._matrix[1:])
 
