@@ -160,6 +160,82 @@ def test_parked_coroutine_woken_while_its_run_ends(ros_context):
     parked_coroutine_resumes(ex, ros_context, "exec_late_wake")
 
 
+def slow_callback_node(ros_context, name: str, seconds: float, fail: bool = False):
+    """A node whose subscription callback marks ``started``, sleeps, marks ``ended``, then
+    raises if ``fail``; and a publisher to it."""
+    node = rclpy.create_node(name, context=ros_context)
+    pub = node.create_publisher(Int32, name, OUTPUT_QOS)
+    marks: dict[str, float] = {}
+
+    def on_msg(m: Int32) -> None:
+        marks["started"] = time.monotonic()
+        time.sleep(seconds)
+        marks["ended"] = time.monotonic()
+        if fail:
+            raise RuntimeError(f"late failure {m.data}")
+
+    node.create_subscription(Int32, name, on_msg, OUTPUT_QOS)
+    return node, pub, marks
+
+
+def started_callback(ex: MultiThreadedExecutor, node, pub, marks) -> threading.Thread:
+    """Spin ``ex`` with ``node`` in a thread until the node's callback has started."""
+    ex.add_node(node)
+    thread = spin_thread(ex)
+    thread.start()
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    pub.publish(Int32(data=5))
+    wait_for(lambda: "started" in marks, 10, "the callback to start")
+    return thread
+
+
+def test_shutdown_waits_for_running_callbacks(ros_context):
+    """``shutdown(timeout_sec)`` returns once the callback in progress has ended, so the
+    nodes can be destroyed next (rclpy 7.1.6's returns at once: this test fails with it)."""
+    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    node, pub, marks = slow_callback_node(ros_context, "exec_shutdown", 0.5)
+    thread = started_callback(ex, node, pub, marks)
+    try:
+        assert ex.shutdown(timeout_sec=5.0) is True
+        assert "ended" in marks, "shutdown returned while the callback was still running"
+    finally:
+        node.destroy_node()
+        thread.join(5)
+
+
+def test_shutdown_times_out_on_a_long_callback(ros_context):
+    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    node, pub, marks = slow_callback_node(ros_context, "exec_shutdown_to", 1.5)
+    thread = started_callback(ex, node, pub, marks)
+    try:
+        t0 = time.monotonic()
+        assert ex.shutdown(timeout_sec=0.2) is False
+        assert time.monotonic() - t0 < 1.0
+        assert "ended" not in marks
+        wait_for(lambda: "ended" in marks, 5, "the callback to end")
+    finally:
+        node.destroy_node()
+        thread.join(5)
+
+
+def test_callback_failing_during_shutdown_is_logged(ros_context, capfd):
+    """A callback that raises while the executor shuts down is reported by name in the log,
+    not printed later as an exception "never retrieved" when its task is collected."""
+    import gc
+
+    ex = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    node, pub, marks = slow_callback_node(ros_context, "exec_shutdown_fail", 0.3, fail=True)
+    thread = started_callback(ex, node, pub, marks)
+    assert ex.shutdown(timeout_sec=5.0) is True
+    node.destroy_node()
+    thread.join(5)
+    del ex, node
+    gc.collect()
+    err = capfd.readouterr().err
+    assert "a callback failed during shutdown: RuntimeError: late failure 5" in err
+    assert "never retrieved" not in err
+
+
 def test_written_for_this_rclpy():
     """The executor overrides rclpy internals: an rclpy upgrade must be checked against it
     (a newer rclpy may carry the upstream fix, rclpy #1452, and make the class unneeded)."""

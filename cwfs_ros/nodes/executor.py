@@ -22,6 +22,12 @@ take it instead of queueing it again, and asks for one more scan when that submi
 ``await`` is submitted again each time it can go on, as in rclpy. Callback groups, and
 exceptions raised in the spin thread, are rclpy's own behaviour.
 
+It also waits in :meth:`MultiThreadedExecutor.shutdown`: rclpy 7.1.6's ``shutdown(timeout_sec)``
+sets its shut-down flag and then skips its own wait because of that flag, so it returns
+while callbacks still run, and the nodes destroyed next fail under them (``cannot use
+Destroyable because destruction was requested``, then printed as "never retrieved" when
+the task is collected).
+
 The class overrides an rclpy internal (``_spin_once_impl``) and reads two more
 (``_executor``, the pool; the task scan): ``test_executor.test_written_for_this_rclpy``
 stops the suite when the pinned rclpy changes, so that this is checked again (a newer rclpy
@@ -31,6 +37,7 @@ may carry the upstream fix, and then this class can go).
 from __future__ import annotations
 
 import concurrent.futures
+import threading
 from collections.abc import Callable
 
 from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
@@ -41,6 +48,7 @@ from rclpy.executors import (
     TimeoutException,
 )
 from rclpy.executors import MultiThreadedExecutor as _RclpyMultiThreadedExecutor
+from rclpy.logging import get_logger
 from rclpy.task import Task
 from rclpy.timer import Timer
 
@@ -74,6 +82,31 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
             self.wake()
         except (AttributeError, InvalidHandle, RCLError):
             pass
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        """Stop dispatching, then wait up to ``timeout_sec`` (None: no limit) for the
+        callbacks already handed to the pool to end, as rclpy documents and 7.1.6 does not
+        do (module doc).  The caller may then destroy the nodes.
+
+        An exception raised by one of those callbacks is logged here (logger
+        ``cwfs_ros.executor``): no spin is left to raise it.  Returns False if a callback
+        was still running at the timeout.  Called from a callback (a pool thread), it does
+        not wait, since that callback's own run would be among those waited for.
+        """
+        super().shutdown(timeout_sec=timeout_sec)
+        pending = [f for f in self._queued.values() if not f.done()]
+        in_pool = threading.current_thread() in getattr(self._executor, "_threads", ())
+        finished = True
+        if pending and not in_pool:
+            timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
+            finished = not concurrent.futures.wait(pending, timeout=timeout).not_done
+        for task in [t for t in self._queued if t.done()]:
+            del self._queued[task]
+            exc = None if task.cancelled() else task.exception()
+            if exc is not None:
+                get_logger("cwfs_ros.executor").error(
+                    f"a callback failed during shutdown: {type(exc).__name__}: {exc}")
+        return finished
 
     def _spin_once_impl(self, timeout_sec: float | Timer | None = None,
                         wait_condition: Callable[[], bool] = lambda: False) -> None:
