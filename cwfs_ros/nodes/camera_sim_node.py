@@ -169,7 +169,7 @@ class CameraSimNode(Node):
             "Scale of that perturbation: normal(0,1) x scale x [8, 150, 150, 0.005, 0.005] "
             "[um, um, um, deg, deg] per hexapod.", fp_range=(0.0, 100.0), **ro))
         d("band", describe("Filter band of the optical model.",
-                                constraints="u | g | r | i | z | y", **ro))
+                           constraints="u | g | r | i | z | y", **ro))
         d("wavelength_nm", describe(
             "Monochromatic wavelength [nm]; 0 = the band's effective wavelength (r: 622).",
             fp_range=(0.0, 2000.0), **ro))
@@ -195,17 +195,17 @@ class CameraSimNode(Node):
             "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
             "then selects, pairs and combines the donuts.", **ro))
         d("frame_rows", describe("Frame rows [px] (frames mode).",
-                                       int_range=(200, 8192), **ro))
+                                 int_range=(200, 8192), **ro))
         d("frame_cols", describe("Frame columns [px] (frames mode).",
-                                       int_range=(200, 8192), **ro))
+                                 int_range=(200, 8192), **ro))
         d("frame_stars_min", describe("Fewest isolated stars per frame.",
-                                         int_range=(0, 50), **ro))
+                                      int_range=(0, 50), **ro))
         d("frame_stars_max", describe("Most isolated stars per frame.",
-                                         int_range=(0, 50), **ro))
+                                      int_range=(0, 50), **ro))
         d("frame_flux_min", describe("Photons of the faintest isolated star.",
-                                          fp_range=(1.0, 1e9), **ro))
+                                     fp_range=(1.0, 1e9), **ro))
         d("frame_flux_max", describe("Photons of the brightest isolated star.",
-                                          fp_range=(1.0, 1e9), **ro))
+                                     fp_range=(1.0, 1e9), **ro))
         d("frame_blend", describe("Add a blended pair to each frame.", **ro))
         d("frame_faint", describe("Add a too-faint star to each frame.", **ro))
         d("render_workers", describe(
@@ -222,7 +222,7 @@ class CameraSimNode(Node):
             int_range=(-1, 2**31 - 2), **ro))
         d("frame_id", describe("frame_id of the images and SimTruth.", **ro))
         d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
-                                                fp_range=(0.05, 60.0)))
+                                           fp_range=(0.05, 60.0)))
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         for prm in params:
