@@ -431,6 +431,83 @@ def test_invalid_visit_leaves_state_alone(sm):
     np.testing.assert_array_equal(s.integral, before[1])
 
 
+def test_visit_order_rules(sm):
+    """With stamps, a visit is applied once and in order: a repeated, older or unset stamp,
+    or one beyond ``max_future_s`` ahead of the clock, is refused with the state unchanged;
+    reset forgets the last stamp."""
+    s = solver(sm, max_future_s=60.0)
+    y = sm.matrix_nm @ perturbation()
+    now = 1_750_000_000 * 10**9
+    assert s.step(y, stamp_ns=now - 10, now_ns=now).valid
+    state = s.state()
+    for stamp, tag in ((now - 10, "stale_visit"), (now - 11, "stale_visit"), (0, "no_stamp"),
+                       (now + 61 * 10**9, "future_stamp")):
+        res = s.step(y, stamp_ns=stamp, now_ns=now)
+        assert not res.valid and res.status.startswith(tag + ":"), (stamp, res.status)
+        assert np.all(res.dof == 0)
+    np.testing.assert_array_equal(s.state()[0], state[0])
+    np.testing.assert_array_equal(s.state()[1], state[1])
+    assert s.n_steps == 1 and s.last_stamp_ns == now - 10
+    assert s.step(y, stamp_ns=now + 59 * 10**9, now_ns=now).valid  # within max_future_s
+    assert s.step(y, stamp_ns=now + 61 * 10**9).valid  # no clock given: no future test
+    s.reset()
+    assert s.last_stamp_ns is None and s.step(y, stamp_ns=now - 10, now_ns=now).valid
+    # The dry-run pattern: state() / restore() put the stamp back too.
+    saved = s.state()
+    assert s.step(y, stamp_ns=now, now_ns=now).valid
+    s.restore(saved)
+    assert s.last_stamp_ns == now - 10 and s.n_steps == 1
+
+
+def test_implausible_wavefront_refused(sm):
+    s = solver(sm, max_abs_zernike_nm=20_000.0)
+    y = np.zeros(76)
+    y[19 + 5] = 1e5  # R04's Z9
+    res = s.step(y)
+    assert not res.valid and res.status.startswith("implausible_wavefront:"), res.status
+    assert "R04" in res.status and "R00" not in res.status
+    assert s.n_steps == 0 and np.all(s.dof_total == 0)
+    y[19 + 5] = 19_999.0  # within the limit: solved (the step limit bounds the correction)
+    assert s.step(y).valid
+
+
+def test_overflowing_input_never_reaches_the_state(sm):
+    """Without the plausibility limit, finite values near the float64 maximum overflow the
+    solve; the step is refused and the state stays finite (it used to become NaN and stay
+    so for every later visit)."""
+    s = solver(sm)
+    y = sm.matrix_nm @ perturbation()
+    assert s.step(y).valid
+    before = s.state()
+    res = s.step(np.full(76, 1.7e308))
+    assert not res.valid and res.status.startswith("non_finite_result:"), res.status
+    np.testing.assert_array_equal(s.dof_total, before[0])
+    np.testing.assert_array_equal(s.integral, before[1])
+    assert np.all(np.isfinite(s.dof_total)) and s.step(y).valid
+
+
+def test_solver_from_params_limits():
+    """0 means no limit; the shipped parameters set both limits."""
+    import yaml
+
+    from cwfs_ros.paths import config_dir
+
+    p = yaml.safe_load((config_dir() / "params.yaml").read_text())["ofc_node"]["ros__parameters"]
+    s = C.solver_from_params(lambda n: p[n])
+    assert s.max_abs_zernike_nm == 20_000.0 and s.max_future_s == 60.0
+    p = {**p, "max_abs_zernike_nm": 0.0, "max_future_s": 0.0}
+    s = C.solver_from_params(lambda n: p[n])
+    assert s.max_abs_zernike_nm is None and s.max_future_s is None
+    with pytest.raises(ConfigError, match="max_future_s"):
+        solver(C.SensitivityMatrix.from_bundled(), max_future_s=-1.0)
+
+
+def test_normalisation_weights_are_named_not_paths():
+    for name in ("../dof", "/etc/hostname", "x" * 300):
+        with pytest.raises(ConfigError, match="unknown normalisation weights"):
+            C.load_normalization_weights(name)
+
+
 # ------------------------------------------------------------------ observability
 def test_observability_null_space(sm, weights):
     rep = C.observability(sm, rel_tol=1e-6)

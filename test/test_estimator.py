@@ -208,6 +208,20 @@ def test_rejects_bad_parameters() -> None:
                            band="q")
 
 
+def test_unreadable_instrument_is_a_config_error(tmp_path) -> None:
+    """What a runtime ``instrument`` parameter may name: a name the file system refuses
+    (OSError) or a file that is not UTF-8 YAML is a ConfigError, as an unknown name is
+    (wavefront_node refuses the value instead of its executor dying)."""
+    from cwfs_ros.core import load_instrument
+
+    with pytest.raises(ConfigError, match="unknown instrument"):
+        load_instrument("x" * 300)
+    bad = tmp_path / "binary.yaml"
+    bad.write_bytes(b"\xff\xfe\x00 not text")
+    with pytest.raises(ConfigError, match="cannot read instrument file"):
+        load_instrument(bad)
+
+
 def test_caustic_flag_keeps_last_good_estimate() -> None:
     """Z22 of a few hundred nm folds the 1-mm paraxial images (the intra rays cross)."""
     from cwfs_ros.core import load_instrument

@@ -6,6 +6,8 @@ serves one corner (R00) with one worker here, to keep the warm-up short.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -27,7 +29,9 @@ from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 
-T = 1_800_000_000_000_000_000
+# Visit stamps in the past of any clock running the tests (ofc_node refuses a visit stamped
+# more than max_future_s ahead of its clock).
+T = 1_750_000_000_000_000_000
 SEC = 1_000_000_000
 
 
@@ -186,9 +190,10 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
         m.zernikes_nm = np.asarray(z, dtype=float)
         m.corner_valid = list(valid)
         m.corners = list(corners)
+        seen = len(of(out, stamp))  # a stamp sent again gets a second correction
         pub.publish(m)
-        wait_for(lambda: of(out, stamp), 5, f"correction {stamp}")
-        return of(out, stamp)[0]
+        wait_for(lambda: len(of(out, stamp)) > seen, 5, f"correction {stamp}")
+        return of(out, stamp)[-1]
 
     d1 = send(T + 1)
     expected = ref.step(y)
@@ -220,6 +225,27 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     assert ofc.set_parameters([Parameter("allow_partial", value=True)])[0].successful
     assert send(T + 8, valid=(True, True, False, True)).valid
 
+    # visit order: a repeated, older or unset stamp is never applied, nor one far ahead of
+    # the clock; nor a finite but absurd wavefront (it overflowed the solve into a NaN state)
+    before = ofc.solver.state()
+    again = send(T + 8)
+    assert not again.valid and again.status.startswith("stale_visit") and "again" in again.status
+    older = send(T + 4)
+    assert not older.valid and older.status.startswith("stale_visit"), older.status
+    unset = send(0)
+    assert not unset.valid and unset.status.startswith("no_stamp")
+    ahead = send(time.time_ns() + 3600 * SEC)
+    assert not ahead.valid and ahead.status.startswith("future_stamp"), ahead.status
+    huge = send(T + 10, z=np.full(76, 1.7e308))
+    assert not huge.valid and huge.status.startswith("implausible_wavefront"), huge.status
+    after = ofc.solver.state()
+    np.testing.assert_array_equal(after[0], before[0])  # none of them moved the state
+    assert after[2:] == before[2:] and np.all(np.isfinite(after[0]))
+    assert send(T + 11).valid  # and the loop goes on
+    tags = dict(ofc.refused.key_values())
+    for tag in ("stale_visit", "no_stamp", "future_stamp", "implausible_wavefront"):
+        assert any(tag in k for k in tags), (tag, tags)
+
     # reset service
     fut = reset.call_async(Trigger.Request())
     wait_for(fut.done, 5, "reset response")
@@ -237,7 +263,8 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
         ("kp", 1.5, "out of range"),
         ("kp", -0.1, "out of range"),
         ("ki", -0.01, "out of range"),
-        ("weights", "nonsense", "not found"),
+        ("weights", "nonsense", "unknown normalisation weights"),
+        ("weights", "../ofc/dof", "unknown normalisation weights"),  # a name, not a path
     ]:
         (res,) = ofc.set_parameters([Parameter(name, value=value)])
         assert not res.successful and words in res.reason, (name, res.reason)
@@ -274,6 +301,11 @@ def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, s
         return m
 
     donut = synthetic_donut(160, 60.0, 0.61)
+    # A producer on R04's topic that claims R44 (a wrong remapping), and one claiming R00,
+    # the corner this node serves: neither may fill that slot.
+    remote["R04"].publish(corner_msg("R44", T, np.full(19, 7777.0)))
+    remote["R04"].publish(corner_msg("R00", T, np.full(19, 8888.0)))
+    wait_for(lambda: wf.rejected.counts["corner_mismatch"] == 2, 10, "both mismatches")
     for k, stamp in enumerate((T, T + SEC)):
         for c, pub in remote.items():
             z = np.arange(19.0) + 100 * ("R00", "R04", "R40", "R44").index(c)
@@ -289,6 +321,7 @@ def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, s
     for i in (1, 2, 3):
         np.testing.assert_array_equal(z[19 * i:19 * i + 19], np.arange(19.0) + 100 * i)
     assert np.all(np.isfinite(z[:19]))  # R00 estimated locally
+    assert not np.any(np.isin(z, (7777.0, 8888.0)))
     (v2,) = of(vectors, T + SEC)
     assert list(v2.corner_valid) == [True, True, False, True]
     assert "R40 bad_corner_wavefront" in v2.status

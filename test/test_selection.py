@@ -334,6 +334,33 @@ def test_combination_single_pair_uses_noise_model():
     assert np.allclose(r0.uncertainty_nm, 2000 * q)
 
 
+def test_combination_drops_a_pair_without_a_noise_scale():
+    """A NaN noise scale (no S/N) gives its pair no weight: with two pairs, the other one
+    alone (the robust loop, which would drop it, needs three)."""
+    z = np.zeros((2, 19))
+    z[1] += 1.0
+    r = combine_pairs(z, np.array([np.nan, 0.01]))
+    assert r.n_pairs == 1 and list(r.used) == [False, True]
+    assert np.all(r.zernikes_nm == 1.0) and np.all(np.isfinite(r.uncertainty_nm))
+
+
+def test_a_noise_free_donut_on_a_binned_pixel_boundary_is_one_source():
+    """Centred on a boundary between binned pixels, a noise-free donut gives the matched
+    filter two equal maxima; both were kept, converged on the same centroid and were
+    rejected as blended with each other ("another source 0 px away")."""
+    r_out, r_in = 66.7, 0.61 * 66.7
+    yy, xx = np.mgrid[:600, :600]
+    img = np.zeros((600, 600))
+    for dy in (-0.375, -0.125, 0.125, 0.375):  # 4x4 supersampled annulus
+        for dx in (-0.375, -0.125, 0.125, 0.375):
+            r = np.hypot(xx + dx - 307.5, yy + dy - 300.0)
+            img += (r <= r_out) & (r >= r_in)
+    frame = 1000.0 + 3e6 * img / img.sum()
+    dets, _ = detect_donuts(frame, outer_radius_px=r_out, inner_radius_px=r_in, stamp_px=160)
+    assert len(dets) == 1, [(d.x, d.y, d.status) for d in dets]
+    assert dets[0].ok and abs(dets[0].x - 307.5) < 0.05 and abs(dets[0].y - 300.0) < 0.05
+
+
 def _star(side, snr, fx, fy):
     from cwfs_ros.core.detection import DetectedDonut
 

@@ -193,8 +193,11 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
         nan = np.full(N_TERMS, np.nan)
         return CombinedEstimate(nan, nan.copy(), 0, np.zeros(0, bool), np.zeros((0, N_TERMS),
                                 bool), np.zeros(0))
-    sig = np.maximum(pair_sigma_nm(q, cfg), 1e-6)  # (n, 19)
-    finite = np.all(np.isfinite(d), axis=1)
+    with np.errstate(invalid="ignore"):
+        sig = np.maximum(pair_sigma_nm(q, cfg), 1e-6)  # (n, 19)
+    # A pair without a finite noise scale has no weight to combine with (NaN would spread
+    # to the combination where fewer than 3 pairs leave the robust loop out).
+    finite = np.all(np.isfinite(d), axis=1) & np.isfinite(q)
     used = finite.copy()
     term_used = np.repeat(used[:, None], N_TERMS, axis=1)
     chi = np.zeros(n)

@@ -174,6 +174,8 @@ def _load_yaml(path: str) -> object:
             return yaml.load(f, Loader=loader)  # noqa: S506 (safe loader)
     except FileNotFoundError as exc:
         raise ConfigError(f"OFC data file not found: {path}") from exc
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read OFC data file {path}: {exc}") from exc
 
 
 def _yaml_array(path: Path, shape_ndim: int) -> np.ndarray:
@@ -320,7 +322,14 @@ def load_normalization_weights(
     sensitivity, so a normalised unit of a DoF that is cheap (big range) and effective (big
     FWHM change) is large, and the minimum-norm solution prefers it.
     """
-    w = _yaml_array(_dir(cfg_dir) / "normalization_weights" / f"{name}.yaml", 1)
+    folder = _dir(cfg_dir) / "normalization_weights"
+    known = sorted(p.stem for p in folder.glob("*.yaml"))
+    if name not in known:  # a name, never a path (the ofc_node parameter takes any string)
+        raise ConfigError(f"unknown normalisation weights {name!r}: choose one of {known}")
+    try:
+        w = _yaml_array(folder / f"{name}.yaml", 1)
+    except (TypeError, ValueError) as exc:  # not an array of numbers
+        raise ConfigError(f"normalisation weights {name!r}: {exc}") from exc
     if w.shape != (N_DOF,) or not np.all(np.isfinite(w)) or np.any(w <= 0):
         raise ConfigError(f"normalisation weights {name!r} must be 50 positive numbers")
     return w
@@ -665,7 +674,8 @@ class Estimate:
     dof_error : (50,) estimated DoF state error, DoF units (zeros when not valid).
     valid, status : ``status`` is ``"ok"`` or ``"<tag>: <explanation>"``; tags are
         ``bad_shape``, ``non_finite``, ``corner_invalid``, ``no_valid_corners``,
-        ``ill_conditioned``.
+        ``implausible_wavefront``, ``ill_conditioned``; :meth:`OFCSolver.step` adds
+        ``no_stamp``, ``stale_visit``, ``future_stamp`` and ``non_finite_result``.
     wavefront_nm : (19 * n_fields,) measured minus intrinsic, NaN on dropped corners.
     wavefront_rms_nm : corner-averaged RMS wavefront of ``wavefront_nm``:
         ``sqrt(sum(r**2) / n_corners_used)`` (Zernikes have unit RMS, so this is the RMS of the
@@ -722,7 +732,8 @@ class OFCResult:
 
 
 def _rms(r: np.ndarray, n_corners: int) -> float:
-    return float(np.sqrt(np.sum(r**2) / n_corners)) if n_corners > 0 else float("nan")
+    with np.errstate(over="ignore"):  # inf for absurd input, which is refused anyway
+        return float(np.sqrt(np.sum(r**2) / n_corners)) if n_corners > 0 else float("nan")
 
 
 # --------------------------------------------------------------------------------------------
@@ -754,6 +765,13 @@ class OFCSolver:
     allow_partial : if True, invalid corners' rows are dropped instead of refusing the visit.
     max_condition : refuse when the effective condition number of the (normalised) inverse
         exceeds this.
+    max_abs_zernike_nm : refuse a visit whose used corners hold a Zernike term beyond this
+        (nm; None: no limit). Finite but absurd values (a corrupted or misconfigured
+        producer) would otherwise overflow the solve into a NaN state, or command the full
+        step limit from a wavefront no estimator can measure.
+    max_future_s : with ``step(..., stamp_ns=, now_ns=)``, refuse a visit stamped more than
+        this ahead of ``now_ns`` (None: no limit): applied, it would make every later visit
+        look stale (see :meth:`step`).
     dof_spec : DoF table (default ``config/ofc/dof.yaml``).
     """
 
@@ -775,6 +793,8 @@ class OFCSolver:
         max_integral: np.ndarray | Sequence[float] | None = None,
         allow_partial: bool = False,
         max_condition: float = 1e6,
+        max_abs_zernike_nm: float | None = None,
+        max_future_s: float | None = None,
         dof_spec: DofSpec | None = None,
     ) -> None:
         self.sensitivity = sensitivity if sensitivity is not None else (
@@ -797,6 +817,13 @@ class OFCSolver:
         self.ki = float(ki)
         self.allow_partial = bool(allow_partial)
         self.max_condition = float(max_condition)
+        for name, v in (("max_abs_zernike_nm", max_abs_zernike_nm),
+                        ("max_future_s", max_future_s)):
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"{name} must be a positive number or None, got {v!r}")
+        self.max_abs_zernike_nm = None if max_abs_zernike_nm is None else float(
+            max_abs_zernike_nm)
+        self.max_future_s = None if max_future_s is None else float(max_future_s)
         self.spec = dof_spec if dof_spec is not None else load_dof_spec()
         self.weights = _resolve_weights(weights, self.spec)
         mask = np.ones(N_DOF, dtype=bool) if dof_mask is None else np.asarray(dof_mask, bool)
@@ -822,6 +849,8 @@ class OFCSolver:
         self.dof_total = np.zeros(N_DOF)
         self.integral = np.zeros(N_DOF)
         self.n_steps = 0
+        # Stamp (ns) of the last visit applied through step(stamp_ns=...); None before one.
+        self.last_stamp_ns: int | None = None
 
     # ---------------------------------------------------------------- state
     def set_band(self, band: str) -> None:
@@ -839,6 +868,17 @@ class OFCSolver:
         self.dof_total = np.zeros(N_DOF)
         self.integral = np.zeros(N_DOF)
         self.n_steps = 0
+        self.last_stamp_ns = None
+
+    def state(self) -> tuple:
+        """The controller state (accumulated DoFs, integral, steps, last visit stamp), for
+        :meth:`restore` (a dry run) or to carry over into a rebuilt solver."""
+        return self.dof_total.copy(), self.integral.copy(), self.n_steps, self.last_stamp_ns
+
+    def restore(self, state: tuple) -> None:
+        """Put back a :meth:`state`."""
+        dof_total, integral, self.n_steps, self.last_stamp_ns = state
+        self.dof_total, self.integral = dof_total.copy(), integral.copy()
 
     def _inverse(self, rows: np.ndarray) -> _Inverse:
         key = np.packbits(rows).tobytes()
@@ -902,6 +942,13 @@ class OFCSolver:
             bad_c = sorted({names[i // N_ZK] for i in np.flatnonzero(bad_rows)})
             return refuse(f"non_finite: NaN/inf in the wavefront of {', '.join(bad_c)} "
                           f"({int(bad_rows.sum())} values)", corners=corners)
+        if self.max_abs_zernike_nm is not None:
+            big = rows & (np.abs(y) > self.max_abs_zernike_nm)
+            if big.any():
+                big_c = sorted({names[i // N_ZK] for i in np.flatnonzero(big)})
+                return refuse(f"implausible_wavefront: |Z| up to {np.abs(y[big]).max():.4g} nm "
+                              f"in {', '.join(big_c)}, beyond max_abs_zernike_nm "
+                              f"{self.max_abs_zernike_nm:g}", corners=corners)
         r_full = np.where(rows, y - self.intrinsic_nm, np.nan)
         r = r_full[rows]
         n_used = int(cv.sum())
@@ -911,10 +958,13 @@ class OFCSolver:
             return refuse(f"ill_conditioned: effective condition number {inv.condition:.3g} "
                           f"> max_condition {self.max_condition:.3g} "
                           f"({self.method}, {n_used} corners)", r_full, rms, corners)
-        z = inv.vt.T @ (inv.filt * (inv.u.T @ r))
-        e = np.zeros(N_DOF)
-        e[self.dof_mask] = self.weights[self.dof_mask] * z
-        fit_res = r - self.sensitivity.matrix_nm[rows] @ e
+        # Overflow (values near the float64 maximum, with no plausibility limit set) gives
+        # NaN/inf here, which step() refuses as non_finite_result: no warning needed.
+        with np.errstate(over="ignore", invalid="ignore"):
+            z = inv.vt.T @ (inv.filt * (inv.u.T @ r))
+            e = np.zeros(N_DOF)
+            e[self.dof_mask] = self.weights[self.dof_mask] * z
+            fit_res = r - self.sensitivity.matrix_nm[rows] @ e
         return Estimate(e, True, "ok", r_full, rms, _rms(fit_res, n_used), inv.n_modes,
                         inv.condition, corners)
 
@@ -924,10 +974,29 @@ class OFCSolver:
         return [f"field{i}" for i in range(self.n_fields)]
 
     # ---------------------------------------------------------------- control step
+    def _stamp_problem(self, stamp_ns: int | None, now_ns: int | None) -> str | None:
+        """Why a visit of this stamp must not be applied, or None."""
+        if stamp_ns is None:
+            return None
+        if stamp_ns <= 0:
+            return "no_stamp: the visit's header.stamp is unset (0)"
+        if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
+            what = "again" if stamp_ns == self.last_stamp_ns else "older than the last one"
+            return (f"stale_visit: visit {stamp_ns} ns is {what} applied "
+                    f"({self.last_stamp_ns} ns): not applied twice or out of order")
+        if self.max_future_s is not None and now_ns is not None and now_ns > 0 and \
+                stamp_ns > now_ns + self.max_future_s * 1e9:
+            return (f"future_stamp: visit {stamp_ns} ns is {(stamp_ns - now_ns) / 1e9:.4g} s "
+                    f"ahead of the clock (max_future_s {self.max_future_s:g})")
+        return None
+
     def step(
         self,
         measured_nm: np.ndarray | Sequence[float],
         corner_valid: np.ndarray | Sequence[bool] | None = None,
+        *,
+        stamp_ns: int | None = None,
+        now_ns: int | None = None,
     ) -> OFCResult:
         """One visit: estimate, PI control law, step limit, range clip, accumulate.
 
@@ -936,6 +1005,11 @@ class OFCSolver:
         measured_nm : (19 * n_fields,) or (n_fields, 19) total measured wavefront in nm
             (intrinsic included; it is subtracted here).
         corner_valid : (n_fields,) bools; default all True.
+        stamp_ns : the visit's stamp. Given, a visit is refused when its stamp is unset (0),
+            not newer than the last visit applied (a repeated or reordered message would
+            otherwise be integrated twice, or an old correction applied after a newer
+            one), or more than ``max_future_s`` ahead of ``now_ns`` (the clock's time, ns).
+            :meth:`reset` forgets the last stamp.
 
         Returns
         -------
@@ -943,7 +1017,10 @@ class OFCSolver:
         changes.
         """
         t0 = time.perf_counter()
-        est = self.estimate(measured_nm, corner_valid)
+        problem = self._stamp_problem(stamp_ns, now_ns)
+        est = (self.estimate(measured_nm, corner_valid) if problem is None else
+               Estimate(np.zeros(N_DOF), False, problem, np.full(self.n_fields * N_ZK, np.nan),
+                        float("nan"), float("nan"), 0, float("nan"), ()))
         if not est.valid:
             return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False, est.status,
                              est.wavefront_rms_nm, float("nan"), est.n_modes_used,
@@ -968,9 +1045,20 @@ class OFCSolver:
         u = total - self.dof_total
         # anti-windup: a DoF whose correction was limited does not integrate this visit
         integral[clipped] = self.integral[clipped]
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(total))
+                and np.all(np.isfinite(integral))):
+            # Never reached from finite, plausible input; kept so that no arithmetic accident
+            # can leave a NaN in the state, which every later visit would inherit.
+            return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False,
+                             "non_finite_result: the solve gave NaN/inf DoFs; state unchanged",
+                             est.wavefront_rms_nm, float("nan"), est.n_modes_used, e,
+                             np.zeros(N_DOF, dtype=bool), est.condition, est.corners_used,
+                             time.perf_counter() - t0)
         self.integral = integral
         self.dof_total = total
         self.n_steps += 1
+        if stamp_ns is not None:
+            self.last_stamp_ns = int(stamp_ns)
         rows = self.sensitivity.rows_for(est.corners_used)
         r = est.wavefront_nm[rows]
         pred = r + self.sensitivity.matrix_nm[rows] @ u
@@ -1006,9 +1094,10 @@ def solver_from_params(get: Callable[[str], Any]) -> OFCSolver:
 
     The one place that turns the parameters of ``config/params.yaml`` (``band``,
     ``matrix_source``, ``method``, ``n_modes``, ``alpha``, ``weights``, ``kp``, ``ki``,
-    ``dof_mask``, ``allow_partial``, ``max_step_scale``, ``clip_to_range``, ``max_condition``)
-    into a solver, for the node and for the offline replay of a bag alike. Raises ConfigError
-    naming the problem.
+    ``dof_mask``, ``allow_partial``, ``max_step_scale``, ``clip_to_range``, ``max_condition``,
+    ``max_abs_zernike_nm``, ``max_future_s``; 0 for either is no limit) into a solver, for
+    the node and for the offline replay of a bag alike. Raises ConfigError naming the
+    problem.
     """
     spec = load_dof_spec()
     band = str(get("band"))
@@ -1027,7 +1116,15 @@ def solver_from_params(get: Callable[[str], Any]) -> OFCSolver:
         max_step=spec.max_step * scale if scale > 0 else None,
         allow_partial=bool(get("allow_partial")),
         max_condition=float(get("max_condition")),
+        max_abs_zernike_nm=_positive_or_none(get("max_abs_zernike_nm")),
+        max_future_s=_positive_or_none(get("max_future_s")),
         dof_spec=spec)
+
+
+def _positive_or_none(value: Any) -> float | None:
+    """A parameter where 0 means "no limit"."""
+    v = float(value)
+    return v if v > 0 else None
 
 
 # --------------------------------------------------------------------------------------------

@@ -480,6 +480,13 @@ def _find_peaks(snr_map: np.ndarray, threshold: float, min_sep_b: float, sidelob
         y, x, v = int(iy[k]), int(ix[k]), float(vals[k])
         lobe = False
         for ky, kx, kv in kept:
+            if abs(y - ky) <= half and abs(x - kx) <= half:
+                # Inside a kept peak's window: both are the maximum of windows holding the
+                # other, so they tie, a plateau of one source (a noise-free donut centred on
+                # a binned-pixel boundary).  Kept twice, the two would converge on the same
+                # centroid and blend each other away.
+                lobe = True
+                break
             if np.hypot(y - ky, x - kx) <= near_b and v < margin * sidelobe * kv + threshold:
                 lobe = (explained is None or v - explained((ky, kx), (y, x))
                         < threshold + unexplained * kv)

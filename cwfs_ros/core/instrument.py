@@ -134,8 +134,8 @@ class Instrument:
     def from_yaml(cls, path: str | Path) -> Instrument:
         path = Path(path)
         try:
-            data = yaml.safe_load(path.read_text())
-        except (OSError, yaml.YAMLError) as exc:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
             raise ConfigError(f"cannot read instrument file {path}: {exc}") from exc
         if not isinstance(data, dict):
             raise ConfigError(f"instrument file {path} must hold a mapping, got {type(data)}")
@@ -171,9 +171,16 @@ def load_instrument(name_or_path: str | Path | Instrument) -> Instrument:
     p = Path(name_or_path)
     if p.suffix not in (".yaml", ".yml"):
         p = config_dir() / "instruments" / f"{name_or_path}.yaml"
-    if not p.is_file():
+    try:
+        # (is_file and stat raise OSError for a name the file system refuses, e.g. longer
+        # than 255 bytes: a bad parameter value, not a crash.)
+        found = p.is_file()
+        key = (str(p.resolve()), p.stat().st_mtime) if found else None
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"unknown instrument {str(name_or_path)[:80]!r}: {exc}") from exc
+    if key is None:
         raise ConfigError(
             f"unknown instrument {str(name_or_path)!r}: no file {p}; "
             f"available: {available_instruments()}"
         )
-    return _load_cached(str(p.resolve()), p.stat().st_mtime)
+    return _load_cached(*key)

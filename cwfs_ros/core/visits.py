@@ -72,7 +72,8 @@ class Rejection:
 
     Attributes:
         reason: short tag for counting (``duplicate``, ``late``, ``unpaired``,
-            ``unknown_corner``, ``unknown_side``, ``bad_corner_wavefront``, or a decoding /
+            ``unknown_corner``, ``unknown_side``, ``bad_corner_wavefront``,
+            ``corner_mismatch`` (a remote corner's message naming another corner), or a decoding /
             estimator tag such as ``unsupported_encoding``).
         message: one human-readable sentence.
     """

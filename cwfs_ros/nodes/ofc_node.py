@@ -12,9 +12,11 @@ design wavefront at the corner fields, estimate the DoF error with a truncated-S
 pseudo-inverse in normalised DoF units, apply the P/PI law, limit the step per visit and clip
 the accumulated state to the DoF ranges. The DoF convention is batoid_rubin's (OCS), the one of
 ``DofCorrection``; both matrix sources are converted to it. A vector with an invalid corner is
-refused (valid=false + status) unless ``allow_partial``. With ``dry_run`` the correction is
-computed and published (``dry_run=true``) but the controller state does not advance, since
-the correction is not applied.
+refused (valid=false + status) unless ``allow_partial``; so is a vector with a Zernike term
+beyond ``max_abs_zernike_nm``, one whose stamp is unset, not newer than the last visit applied
+(a repeated or reordered message) or more than ``max_future_s`` ahead of the clock. With
+``dry_run`` the correction is computed and published (``dry_run=true``) but the controller
+state does not advance, since the correction is not applied.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ CORRECTION_TOPIC = "aos/ofc/dof_correction"
 MATRIX_SOURCES = C.MATRIX_SOURCES
 _SOLVER_PARAMS = ("band", "matrix_source", "method", "n_modes", "alpha", "weights", "kp", "ki",
                   "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
-                  "max_condition")
+                  "max_condition", "max_abs_zernike_nm", "max_future_s")
 
 
 # The matrix of a source and the solver of a parameter set live in the core, where the offline
@@ -133,6 +135,14 @@ class OfcNode(Node):
         d("max_condition", describe(
             "Refuse when the effective condition number of the inverse exceeds this.",
             fp_range=(1.0, 1e15)))
+        d("max_abs_zernike_nm", describe(
+            "Refuse a visit whose used corners hold a Zernike term beyond this [nm] "
+            "(0 = no limit): finite but absurd input is refused, not solved.",
+            fp_range=(0.0, 1e7)))
+        d("max_future_s", describe(
+            "Refuse a visit stamped more than this ahead of the node's clock [s] (0 = no "
+            "limit). Visits not newer than the last applied one are always refused.",
+            fp_range=(0.0, 1e7)))
         d("dry_run", describe(
             "Compute and publish corrections flagged dry_run, without advancing the state."))
         d("frame_id", describe("frame_id of DofCorrection."))
@@ -151,6 +161,9 @@ class OfcNode(Node):
             build_solver(get)
         except (ConfigError, ValueError, TypeError) as exc:
             return result(False, str(exc))
+        except Exception as exc:  # noqa: BLE001 - a bad value is refused, never raised
+            # (e.g. a weights file that is not YAML: the parser's own error)
+            return result(False, f"{type(exc).__name__}: {exc}")
         return result(True)
 
     def _apply_parameters(self, params: Sequence[Parameter]) -> None:
@@ -160,9 +173,7 @@ class OfcNode(Node):
             self.frame_id = str(self._param("frame_id"))
             if names & set(_SOLVER_PARAMS):
                 old, new = self.solver, build_solver(self._param)
-                new.dof_total = old.dof_total.copy()
-                new.integral = old.integral.copy()
-                new.n_steps = old.n_steps
+                new.restore(old.state())
                 new.estimate(new.intrinsic_nm)
                 self.solver = new
                 self.get_logger().info(f"solver rebuilt for {sorted(names)}; state kept")
@@ -179,10 +190,11 @@ class OfcNode(Node):
                 if problem is not None:
                     out = self._refusal(problem)
                 else:
-                    saved = (s.dof_total.copy(), s.integral.copy(), s.n_steps)
-                    out = s.step(z, valid)
+                    saved = s.state()
+                    out = s.step(z, valid, stamp_ns=stamp,
+                                 now_ns=self.get_clock().now().nanoseconds)
                     if dry:
-                        s.dof_total, s.integral, s.n_steps = saved
+                        s.restore(saved)
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
             dry = self.dry_run

@@ -74,6 +74,7 @@ from .common import (
     diagnostics_array,
     image_qos,
     result,
+    stamp_to_ns,
 )
 from .convert import (
     corner_entry_from_msg,
@@ -172,8 +173,8 @@ class WavefrontNode(Node):
             for c in CORNERS:
                 if c not in self.corners:
                     self._subs.append(self.create_subscription(
-                        CornerWavefront, corner_topic(c), self._on_remote_corner, OUTPUT_QOS,
-                        callback_group=self._cb_remote))
+                        CornerWavefront, corner_topic(c), self._remote_corner_callback(c),
+                        OUTPUT_QOS, callback_group=self._cb_remote))
         self._expiry_timer = self.create_timer(0.1, self._expire,
                                                callback_group=self._cb_timers)
         self._diag_timer = self.create_timer(p("diagnostics_period_s"), self.publish_diagnostics,
@@ -280,6 +281,8 @@ class WavefrontNode(Node):
                 validate_settings(self._settings_from(get))
             except ConfigError as exc:
                 return result(False, str(exc))
+            except Exception as exc:  # noqa: BLE001 - a bad value is refused, never raised
+                return result(False, f"{type(exc).__name__}: {exc}")
         if "input_mode" in new and new["input_mode"] not in _INPUT_MODES:
             return result(False, f"input_mode must be one of {_INPUT_MODES}, got "
                                  f"{new['input_mode']!r}")
@@ -437,11 +440,23 @@ class WavefrontNode(Node):
             self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status))
 
     # ------------------------------------------------------------------ assembly
-    def _on_remote_corner(self, msg: CornerWavefront) -> None:
-        try:
-            self._assemble(corner_entry_from_msg(msg))
-        except Exception as exc:  # noqa: BLE001
-            self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
+    def _remote_corner_callback(self, corner: str):
+        """The callback of another producer's ``corner`` topic: a message must be about the
+        corner of the topic it came on.  One claiming another corner (a misconfigured or
+        wrongly remapped producer) would fill that corner's slot, possibly one this node
+        serves itself, with a wavefront measured elsewhere: it is rejected."""
+        def on_msg(msg: CornerWavefront) -> None:
+            try:
+                if msg.corner != corner:
+                    self._reject(Rejection(
+                        "corner_mismatch", f"a CornerWavefront on {corner}'s topic claims corner "
+                        f"{msg.corner!r}: not assembled", corner, "",
+                        stamp_to_ns(msg.header.stamp)), warn=True)
+                    return
+                self._assemble(corner_entry_from_msg(msg))
+            except Exception as exc:  # noqa: BLE001 - a message must never crash the node
+                self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
+        return on_msg
 
     def _assemble(self, entry: CornerEntry) -> None:
         with self._lock:
