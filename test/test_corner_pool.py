@@ -73,6 +73,30 @@ def test_orientation_settings_undo_a_rotated_or_flipped_camera():
     assert not wrong.valid or np.max(np.abs(wrong.zernikes_nm - ref.zernikes_nm)) > 20.0
 
 
+def test_a_late_crash_report_does_not_restart_the_new_worker():
+    """Two jobs queued behind a worker's death both report it. Between the two reports a new
+    job starts the slot's new worker (here from the first report's callback, as a node's
+    next visit may); the second report must restart the dead executor it ran on, not that
+    new one, which used to be shut down with the new job in it (worker_crashed)."""
+    pool = CornerPool(["R00"], n_workers=1)
+    try:
+        tiny = np.ones((1, 1))
+        killer = pool._submit("R00", os._exit, 3)
+        first = pool.submit(job(tiny, tiny, "R00"))
+        second = pool.submit(job(tiny, tiny, "R00"))
+        started: list = []
+        first.add_done_callback(lambda _f: started.append(pool.submit(job(tiny, tiny, "R00"))))
+        assert first.result(timeout=60).reason == "worker_crashed"
+        assert second.result(timeout=60).reason == "worker_crashed"
+        assert killer.exception(timeout=60) is not None
+        (new,) = started
+        out = new.result(timeout=60)
+        assert out.reason == "stamp_too_small", out.status  # ran on the new worker
+        assert pool.restarts == 1
+    finally:
+        pool.shutdown()
+
+
 def test_pool_affinity_and_recovery_from_a_dead_worker():
     pool = CornerPool(["R00", "R04", "R40"], n_workers=2)
     try:

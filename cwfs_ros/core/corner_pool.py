@@ -363,14 +363,21 @@ class CornerPool:
                 self.restarts += 1
         broken.shutdown(wait=False, cancel_futures=True)
 
-    def _submit(self, corner: str, fn: Callable, *args) -> Future:
+    def _submit_on(self, corner: str, fn: Callable, *args
+                   ) -> tuple[Future, ProcessPoolExecutor]:
+        """``fn(*args)`` on the corner's worker: its future, and the executor that runs it
+        (the one to restart if it breaks: by then the slot may hold a newer, healthy one)."""
         i = self.affinity[corner]
         ex = self._slot(i)
         try:
-            return ex.submit(fn, *args)
+            return ex.submit(fn, *args), ex
         except BrokenProcessPool:
             self._restart(i, ex)
-            return self._slot(i).submit(fn, *args)
+            ex = self._slot(i)
+            return ex.submit(fn, *args), ex
+
+    def _submit(self, corner: str, fn: Callable, *args) -> Future:
+        return self._submit_on(corner, fn, *args)[0]
 
     def submit(self, job: CornerJob) -> Future:
         """Queue a job on its corner's worker. The future's result is a CornerOutcome.
@@ -399,7 +406,7 @@ class CornerPool:
         if corner not in self.affinity:
             raise ConfigError(f"corner {corner!r} is not served by this pool")
         out: Future = Future()
-        inner = self._submit(corner, fn, job)
+        inner, used = self._submit_on(corner, fn, job)
         i = self.affinity[corner]
 
         def done(f: Future) -> None:
@@ -407,9 +414,9 @@ class CornerPool:
                 out.set_result(f.result())
             except BaseException as exc:  # noqa: BLE001
                 if isinstance(exc, BrokenProcessPool):
-                    ex = self._slots[i]
-                    if ex is not None:
-                        self._restart(i, ex)
+                    # The executor this job ran on, not the slot's current one: another
+                    # job's failure may already have replaced it with a healthy worker.
+                    self._restart(i, used)
                 out.set_result(invalid_outcome(
                     corner, stamp_ns, "worker_crashed",
                     f"the worker process failed ({type(exc).__name__}: {exc})",
