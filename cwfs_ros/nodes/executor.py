@@ -84,29 +84,49 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
             pass
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
-        """Stop dispatching, then wait up to ``timeout_sec`` (None: no limit) for the
-        callbacks already handed to the pool to end, as rclpy documents and 7.1.6 does not
-        do (module doc).  The caller may then destroy the nodes.
+        """Stop dispatching, wait up to ``timeout_sec`` (None or negative: no limit; 0: no
+        wait) for the callbacks already handed to the pool to end, then let rclpy release
+        the executor's resources, as rclpy documents and 7.1.6 does not do (module doc).
+        The caller may then destroy the nodes.
 
-        An exception raised by one of those callbacks is logged here (logger
-        ``cwfs_ros.executor``): no spin is left to raise it.  Returns False if a callback
-        was still running at the timeout.  Called from a callback (a pool thread), it does
-        not wait, since that callback's own run would be among those waited for.
+        The wait comes before rclpy's clean-up because a callback still queued in the pool
+        when it starts runs normally only while the executor's guard condition exists.  An
+        exception raised by one of those callbacks is logged here (logger
+        ``cwfs_ros.executor``): no spin may be left to raise it.  Returns False if a
+        callback was still running at the timeout.  Called from a callback (a pool thread),
+        it does not wait, since that callback's own run would be among those waited for.
         """
-        super().shutdown(timeout_sec=timeout_sec)
-        pending = [f for f in self._queued.values() if not f.done()]
+        with self._shutdown_lock:  # rclpy's first step: no further dispatch
+            if not self._is_shutdown:
+                self._is_shutdown = True
+                if self._guard is not None:
+                    self._guard.trigger()
+        pending = [f for f in list(self._queued.values()) if not f.done()]
         in_pool = threading.current_thread() in getattr(self._executor, "_threads", ())
         finished = True
-        if pending and not in_pool:
+        if pending and not in_pool and timeout_sec != 0:
             timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
             finished = not concurrent.futures.wait(pending, timeout=timeout).not_done
-        for task in [t for t in self._queued if t.done()]:
-            del self._queued[task]
+        elif pending:
+            finished = False
+        for task in self._take_done():
             exc = None if task.cancelled() else task.exception()
             if exc is not None:
                 get_logger("cwfs_ros.executor").error(
                     f"a callback failed during shutdown: {type(exc).__name__}: {exc}")
+        super().shutdown(timeout_sec=timeout_sec)
         return finished
+
+    def _take_done(self) -> list[Task]:
+        """Remove the finished tasks from the queue map and return them.  The spin thread
+        and a shutdown from another thread both do this: a snapshot of the keys, and a
+        task the other thread already took is skipped."""
+        done = []
+        for task in list(self._queued):
+            if (task.done() or task.cancelled()) and \
+                    self._queued.pop(task, None) is not None:
+                done.append(task)
+        return done
 
     def _spin_once_impl(self, timeout_sec: float | Timer | None = None,
                         wait_condition: Callable[[], bool] = lambda: False) -> None:
@@ -130,7 +150,6 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
         else:
             self._queued[handler] = self._executor.submit(handler)
             self.submissions += 1
-        for task in [t for t in self._queued if t.done() or t.cancelled()]:
-            del self._queued[task]
+        for task in self._take_done():
             if not task.cancelled():
                 task.result()  # a callback's exception is raised here, as rclpy does
