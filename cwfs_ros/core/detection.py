@@ -560,20 +560,20 @@ def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, 
     np.cumsum(img * gx, axis=1, out=csx[:, 1:])
     rows = np.arange(h_)
 
-    def disk(xc: float, yc: float, radius2: float) -> tuple[np.ndarray, np.ndarray, float, int]:
+    def disk(xc: float, yc: float, radius2: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
+        """Column spans of a disk, its light per row, in all, and its pixel count."""
         lo, hi = _spans(gy, xc, yc, radius2, x0, w_)
         s0 = cs[rows, hi] - cs[rows, lo]
-        return lo, hi, float(s0.sum()), int((hi - lo).sum())
+        return lo, hi, s0, float(s0.sum()), int((hi - lo).sum())
 
     for _ in range(3):  # centroid inside the footprint, re-centred twice
-        lo, hi = _spans(gy, cx, cy, foot2, x0, w_)
-        s0 = cs[rows, hi] - cs[rows, lo]
-        tot = s0.sum()
+        lo, hi, s0, tot, _n = disk(cx, cy, foot2)
         if not tot > 0:
             break
         cx = float((csx[rows, hi] - csx[rows, lo]).sum() / tot)
         cy = float((s0 * gy).sum() / tot)
-    lo, hi, flux, npix = disk(cx, cy, foot2)
+    lo, hi, _s, flux, npix = disk(cx, cy, foot2)
     var = max(flux, 0.0) / cfg.gain_e_per_adu + npix * bg.noise ** 2
     snr = flux / np.sqrt(var) if var > 0 else 0.0
     # Shape numbers, around the ring centre found by the matched filter rather than the
@@ -581,9 +581,9 @@ def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, 
     # which stays on the brighter ring; its light then shows up in that ring's hole and
     # outside its footprint.  Signed sums, so that sky noise averages out.
     pos = max(flux, 1e-300)
-    _, _, hole_sum, hole_n = disk(cand.x, cand.y, (0.8 * r_in) ** 2)
-    _, _, ring_sum, ring_n = disk(cand.x, cand.y, 2.0 * half * half)
-    _, _, foot_sum, foot_n = disk(cand.x, cand.y, foot2)
+    *_, hole_sum, hole_n = disk(cand.x, cand.y, (0.8 * r_in) ** 2)
+    *_, ring_sum, ring_n = disk(cand.x, cand.y, 2.0 * half * half)
+    *_, foot_sum, foot_n = disk(cand.x, cand.y, foot2)
     # Outside the footprint but within the stamp's half-diagonal (empty if the footprint
     # covers that disk).
     out_sum, out_n = (ring_sum - foot_sum, ring_n - foot_n) if ring_n > foot_n else (0.0, 0)

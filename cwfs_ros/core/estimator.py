@@ -56,7 +56,7 @@ from .mapping import (
     reset_field_tiles,
 )
 from .tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
-from .zernike import ZernikeBasis, zernike_basis
+from .zernike import ZernikeBasis, gram_matrix, zernike_basis
 
 __all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "load_algorithm",
            "load_checks", "PairGeometry", "pair_geometry"]
@@ -265,7 +265,7 @@ class PairGeometry:
     def gram_common(self) -> np.ndarray:
         """Gram matrix of Z1..Z_jmax over the common pupil, built on first use (~1 ms; only
         the orthonormal feedback and the Gram report read it)."""
-        gram = _common_gram(self.basis, self.mask_common)
+        gram = gram_matrix(self.basis, self.mask_common, j_min=1, j_max=self.basis.jmax)
         gram.setflags(write=False)
         return gram
 
@@ -438,12 +438,6 @@ def _candidate_positions(n: int, spacing: float, extent: float, obscuration: flo
     return lut
 
 
-def _common_gram(basis: ZernikeBasis, common: np.ndarray) -> np.ndarray:
-    """Gram matrix of Z1..Z_jmax over the common pupil (equal weights: a uniform grid)."""
-    zc = basis.z[:, common].astype(float)
-    return zc @ zc.T / max(int(common.sum()), 1)
-
-
 @lru_cache(maxsize=32)
 def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                   field_intra_deg: tuple[float, float], field_extra_deg: tuple[float, float],
@@ -515,7 +509,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                       for m in (m_in, m_ex)))
     # The swapped-pair footprints are built on first use (PairGeometry.footprints).
     footprint_inputs = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
-    feedback_l = (np.linalg.cholesky(_common_gram(basis, common))
+    feedback_l = (np.linalg.cholesky(gram_matrix(basis, common, j_min=1, j_max=basis.jmax))
                   if algo.feedback_basis == "orthonormal" else None)
     r_pupil = np.hypot(x, y)
     annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
