@@ -306,14 +306,11 @@ class _Pipeline:
     def _ofc(self, vec: Any) -> None:
         import numpy as np
 
-        s = self.solver
-        saved = s.state()
         # The visit-order rules of ofc_node (OFCSolver.step); not the clock's: a bag's
         # stamps are in the past of any clock it is replayed by.
-        out = s.step(np.asarray(vec.zernikes_nm, dtype=np.float64),
-                     np.asarray(vec.corner_valid, dtype=bool), stamp_ns=int(vec.stamp_ns))
-        if self.dry_run:
-            s.restore(saved)
+        out = self.solver.step(np.asarray(vec.zernikes_nm, dtype=np.float64),
+                               np.asarray(vec.corner_valid, dtype=bool),
+                               stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
         self.dofs.append(DofRow(
             self._visit(vec.stamp_ns), int(vec.stamp_ns), bool(out.valid), out.status,
             float(out.wavefront_rms_nm), float(out.predicted_residual_rms_nm),

@@ -452,11 +452,17 @@ def test_visit_order_rules(sm):
     assert s.step(y, stamp_ns=now + 61 * 10**9).valid  # no clock given: no future test
     s.reset()
     assert s.last_stamp_ns is None and s.step(y, stamp_ns=now - 10, now_ns=now).valid
-    # The dry-run pattern: state() / restore() put the stamp back too.
-    saved = s.state()
-    assert s.step(y, stamp_ns=now, now_ns=now).valid
-    s.restore(saved)
-    assert s.last_stamp_ns == now - 10 and s.n_steps == 1
+    # A dry run computes the correction the real step gives, and leaves the state (the stamp
+    # included) as it was.
+    before = s.state()
+    dry = s.step(y, stamp_ns=now, now_ns=now, dry_run=True)
+    assert dry.valid and s.last_stamp_ns == now - 10 and s.n_steps == 1
+    np.testing.assert_array_equal(s.dof_total, before[0])
+    np.testing.assert_array_equal(s.integral, before[1])
+    real = s.step(y, stamp_ns=now, now_ns=now)
+    np.testing.assert_array_equal(real.dof, dry.dof)
+    np.testing.assert_array_equal(real.dof_total, dry.dof_total)
+    assert s.last_stamp_ns == now and s.n_steps == 2
 
 
 def test_implausible_wavefront_refused(sm):

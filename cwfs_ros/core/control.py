@@ -871,8 +871,8 @@ class OFCSolver:
         self.last_stamp_ns = None
 
     def state(self) -> tuple:
-        """The controller state (accumulated DoFs, integral, steps, last visit stamp), for
-        :meth:`restore` (a dry run) or to carry over into a rebuilt solver."""
+        """The controller state (accumulated DoFs, integral, steps, last visit stamp), to
+        carry over into a rebuilt solver with :meth:`restore`."""
         return self.dof_total.copy(), self.integral.copy(), self.n_steps, self.last_stamp_ns
 
     def restore(self, state: tuple) -> None:
@@ -997,6 +997,7 @@ class OFCSolver:
         *,
         stamp_ns: int | None = None,
         now_ns: int | None = None,
+        dry_run: bool = False,
     ) -> OFCResult:
         """One visit: estimate, PI control law, step limit, range clip, accumulate.
 
@@ -1010,6 +1011,8 @@ class OFCSolver:
             otherwise be integrated twice, or an old correction applied after a newer
             one), or more than ``max_future_s`` ahead of ``now_ns`` (the clock's time, ns).
             :meth:`reset` forgets the last stamp.
+        dry_run : compute the correction as usual but leave the state (accumulated DoFs,
+            integral, step count, last stamp) as it was: the correction is not applied.
 
         Returns
         -------
@@ -1054,11 +1057,12 @@ class OFCSolver:
                              est.wavefront_rms_nm, float("nan"), est.n_modes_used, e,
                              np.zeros(N_DOF, dtype=bool), est.condition, est.corners_used,
                              time.perf_counter() - t0)
-        self.integral = integral
-        self.dof_total = total
-        self.n_steps += 1
-        if stamp_ns is not None:
-            self.last_stamp_ns = int(stamp_ns)
+        if not dry_run:
+            self.integral = integral
+            self.dof_total = total
+            self.n_steps += 1
+            if stamp_ns is not None:
+                self.last_stamp_ns = int(stamp_ns)
         rows = self.sensitivity.rows_for(est.corners_used)
         r = est.wavefront_nm[rows]
         pred = r + self.sensitivity.matrix_nm[rows] @ u

@@ -190,11 +190,8 @@ class OfcNode(Node):
                 if problem is not None:
                     out = self._refusal(problem)
                 else:
-                    saved = s.state()
                     out = s.step(z, valid, stamp_ns=stamp,
-                                 now_ns=self.get_clock().now().nanoseconds)
-                    if dry:
-                        s.restore(saved)
+                                 now_ns=self.get_clock().now().nanoseconds, dry_run=dry)
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
             dry = self.dry_run
