@@ -41,6 +41,7 @@ def one_run(kind: str, n_messages: int, rate_hz: float, domain: int) -> dict:
 
     from cwfs_ros.core import control as C
     from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns
+    from cwfs_ros.nodes.executor import count_pool_submissions
     from cwfs_ros.nodes.ofc_node import OfcNode
 
     if kind == "rclpy":
@@ -61,14 +62,7 @@ def one_run(kind: str, n_messages: int, rate_hz: float, domain: int) -> dict:
     ex.add_node(ofc)
     ex.add_node(client)
     # Count what is handed to the thread pool, to set against the callbacks run.
-    runs = {"n": 0}
-    submit = ex._executor.submit
-
-    def counted(fn, *a, **k):
-        runs["n"] += 1
-        return submit(fn, *a, **k)
-
-    ex._executor.submit = counted
+    runs = count_pool_submissions(ex)
     threading.Thread(target=ex.spin, daemon=True).start()
     t_end = time.monotonic() + 20
     while pub.get_subscription_count() == 0 or ofc.pub.get_subscription_count() == 0:

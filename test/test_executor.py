@@ -27,20 +27,11 @@ from rclpy.task import Future  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 
 from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
-from cwfs_ros.nodes.executor import RCLPY_VERSION, MultiThreadedExecutor  # noqa: E402
-
-
-def counting(ex: MultiThreadedExecutor) -> dict[str, int]:
-    """Count what ``ex`` hands to its thread pool (wraps the pool's ``submit``)."""
-    count = {"n": 0}
-    submit = ex._executor.submit
-
-    def counted(fn, *a, **k):
-        count["n"] += 1
-        return submit(fn, *a, **k)
-
-    ex._executor.submit = counted
-    return count
+from cwfs_ros.nodes.executor import (  # noqa: E402
+    RCLPY_VERSION,
+    MultiThreadedExecutor,
+    count_pool_submissions,
+)
 
 
 @contextmanager
@@ -69,7 +60,7 @@ def test_each_callback_submitted_once(ros_context):
             got.append(m.data)
 
     node.create_subscription(Int32, "exec_once", on_msg, OUTPUT_QOS)
-    submitted = counting(ex)
+    submitted = count_pool_submissions(ex)
     with spinning(ex, node):
         wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
         n = 20

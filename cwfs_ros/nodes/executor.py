@@ -52,7 +52,7 @@ from rclpy.logging import get_logger
 from rclpy.task import Task
 from rclpy.timer import Timer
 
-__all__ = ["QUEUED_WAIT_S", "RCLPY_VERSION", "MultiThreadedExecutor"]
+__all__ = ["QUEUED_WAIT_S", "RCLPY_VERSION", "MultiThreadedExecutor", "count_pool_submissions"]
 
 # The rclpy release whose internals this class was written against (see the module doc).
 RCLPY_VERSION = "7.1.6"
@@ -153,3 +153,18 @@ class MultiThreadedExecutor(_RclpyMultiThreadedExecutor):
         for task in self._take_done():
             if not task.cancelled():
                 task.result()  # a callback's exception is raised here, as rclpy does
+
+
+def count_pool_submissions(executor: _RclpyMultiThreadedExecutor) -> dict[str, int]:
+    """Count what a MultiThreadedExecutor, rclpy's or this one, hands to its thread pool
+    (wraps the pool's ``submit``; ``["n"]`` of the returned dict): the measure of the busy
+    loop, for ``bench/bench_executor.py`` and the tests."""
+    count = {"n": 0}
+    submit = executor._executor.submit
+
+    def counted(fn, *a, **k):
+        count["n"] += 1
+        return submit(fn, *a, **k)
+
+    executor._executor.submit = counted
+    return count
