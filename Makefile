@@ -14,8 +14,10 @@ RUFF := $(VENV)/bin/ruff
 export FASTRTPS_DEFAULT_PROFILES_FILE := $(CURDIR)/config/fastdds_profile.xml
 # Jazzy's rclpy skips message field checks by default; tests want them on.
 test: export ROS_PYTHON_CHECK_FIELDS := 1
-# Never inherit another ROS venv's library path (see tools/bootstrap.sh).
-unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE
+# Never inherit another ROS venv's library path (see tools/bootstrap.sh), nor a sourced
+# system ROS install's paths: they would shadow the venv's rclpy and libraries, and let the
+# cwfs_msgs build find another ROS.
+unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE PYTHONPATH LD_LIBRARY_PATH AMENT_PREFIX_PATH CMAKE_PREFIX_PATH
 
 PYTEST_ARGS ?=
 
@@ -29,7 +31,11 @@ lint: venv
 
 test: venv
 	$(RUFF) check .
-	@rc=0; $(PY) -m pytest -q test $(PYTEST_ARGS) || rc=$$?; \
+	@# The tests choose their own middleware and configuration (FastDDS is the only RMW
+	@# installed; CWFS_ROS_CONFIG would point the nodes at another config/): `make demo`
+	@# honours both, the tests do not.
+	@rc=0; env -u RMW_IMPLEMENTATION -u CWFS_ROS_CONFIG $(PY) -m pytest -q test $(PYTEST_ARGS) || rc=$$?; \
+	$(VENV)/bin/fastdds shm clean >/dev/null 2>&1 || true; \
 	if [ $$rc -eq 5 ]; then \
 	  echo "make test: FAILED: pytest collected no tests; the test suite must run tests" >&2; \
 	  exit 1; \

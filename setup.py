@@ -42,7 +42,7 @@ setup(
     maintainer_email="cwfs-ros@example.org",
     description="Curvature wavefront sensing for Rubin/LSST as ROS 2 nodes",
     license="GPL-3.0-or-later",
-    python_requires=">=3.10",
+    python_requires=">=3.11,<3.14",
     entry_points={
         "console_scripts": [
             "cwfs-ros = cwfs_ros.cli:main",

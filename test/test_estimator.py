@@ -56,13 +56,21 @@ def test_lsst_onaxis_zemax_pair(solver: str) -> None:
                                                   f"{'fft' if solver == 'fft' else 'exp'}.txt")
     r = estimate_wavefront(intra, extra, field_intra_deg=(0, 0), field_extra_deg=(0, 0),
                            instrument="lsst_analytic", defocal_offset_mm=1.0, solver=solver)
+    # Against the reference's other terms: measured 4.4 (exp), 8.2 (fft), 10.0 nm (lsq); the
+    # reference's own terms reach 16 nm, so a solver finding nothing fails.
     others = np.delete(r.zernikes_nm - ref, 3)
-    assert np.abs(others).max() < 20.0
-    assert -200 < r.zernikes_nm[3] < -155
+    assert np.abs(others).max() < 12.0
+    # 0.25 wave of Z7 injected, 192.5 nm at the set's 770 nm (the reference's sign): measured
+    # -188.0 / -180.2 / -186.6 nm; the reference's own exp / fft read -174.8 / -161.3.
+    assert abs(r.zernikes_nm[3] - (-192.5)) < 15.0
 
 
 @pytest.mark.parametrize("solver", ["exp", "fft", "lsq"])
 def test_fam_centre_field_against_zemax_truth(solver: str) -> None:
+    """Null test: the FAM telescope has no aberration beyond its design (the ZEMAX truth is
+    batoid's design within 0.03 nm rms here), so this bounds what the estimator adds (noise,
+    model error), not what it recovers; an estimator returning the design alone would pass.
+    Recovery is tested on the injected-aberration and the ray-traced perturbed pairs."""
     intra, extra = (read_image(DATA / "FAM" / f"Image_{s}_R22_S11.txt") for s in ("intra", "extra"))
     truth = np.loadtxt(DATA / "FAM" / "zn_R22_S11.txt")[3:22] * 500.0
     r = estimate_wavefront(intra, extra, field_intra_deg=(0, 0), field_extra_deg=(0, 0),
@@ -73,6 +81,8 @@ def test_fam_centre_field_against_zemax_truth(solver: str) -> None:
 
 
 def test_fam_off_axis_field_against_zemax_truth() -> None:
+    """Null test off axis (the ZEMAX truth is batoid's design within 0.24 nm rms at this 1.0 deg
+    field): the off-axis correction must not read the design's 35 nm rms as an aberration."""
     intra, extra = (read_image(DATA / "FAM" / f"Image_{s}_R13_S11.txt") for s in ("intra", "extra"))
     truth = np.loadtxt(DATA / "FAM" / "zn_R13_S11.txt")[3:22] * 500.0
     field = (-0.70555556, 0.70555556)
@@ -98,7 +108,7 @@ def test_ray_traced_perturbed_pair_on_axis() -> None:
             for dz in (-1.5, 1.5)]
     r = estimate_wavefront(*imgs, field_intra_deg=(0, 0), field_extra_deg=(0, 0),
                            solver="exp")
-    assert _rms(r.zernikes_nm - truth) < 20.0
+    assert _rms(r.zernikes_nm - truth) < 10.0  # measured 5.8 nm (2026-12-02)
 
 
 def test_result_contents() -> None:

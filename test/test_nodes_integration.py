@@ -39,9 +39,10 @@ CONFIGURED_SOLVER = yaml.safe_load((REPO_ROOT / "config" / "params.yaml").read_t
 # Known perturbation (batoid_rubin/OCS convention): M2 dz 20 µm, M2 dx 100 µm, M1M3 B1 0.05 µm.
 PERTURBATION = {0: 20.0, 1: 100.0, 10: 0.05}
 # Per-corner bound on |estimate - truth| (rms over Z4..Z22) at the corner mid-point field
-# (the corners are vignetted and split; today's estimator gives ~10-20 nm here).
-CORNER_RMS_BOUND_NM = 40.0
-MEDIAN_RMS_BOUND_NM = 30.0
+# (the corners are vignetted and split; measured 13-23 nm here, median 17, on 2026-12-02).
+# The perturbation is 69-96 nm per corner, so an estimator recovering only half of it fails.
+CORNER_RMS_BOUND_NM = 30.0
+MEDIAN_RMS_BOUND_NM = 22.0
 ENCODINGS = {"R00": "16UC1", "R04": "32SC1", "R40": "64FC1", "R44": "32FC1"}
 S1 = 1_700_000_000_000_000_000
 S2 = S1 + 30_000_000_000

@@ -400,9 +400,11 @@ def test_corner_from_frames_end_to_end(intra_frame, extra_frame, telescope):
     assert np.all(np.isfinite(res.uncertainty_nm)) and np.all(res.uncertainty_nm > 0)
     truth = true_zernikes_nm(telescope, res.field_deg, wavelength_nm=622.0)
     design = true_zernikes_nm(load_lsst("r"), res.field_deg, wavelength_nm=622.0)
-    # 1e5-photon donuts: tens of nm of noise per term, but far less than the perturbation.
+    # 1e5-photon donuts, two pairs: measured 12.7 nm rms against 140 nm of departure from
+    # the design (README, Frames: 8-11 nm for a 4-pair corner).
     err = np.sqrt(np.mean((res.zernikes_nm - truth) ** 2))
-    assert err < 0.5 * np.sqrt(np.mean((truth - design) ** 2)), err
+    assert np.sqrt(np.mean((truth - design) ** 2)) > 100.0
+    assert err < 25.0, err
 
 
 def _accepted(intra_frame, extra_frame) -> list[list[StarStamp]]:

@@ -83,3 +83,30 @@ def test_random_perturbation_kinds_and_target(kind):
     assert true_error_of_state_nm(dof) == pytest.approx(400.0, rel=0.03)
     with pytest.raises(ValueError, match="one of"):
         random_perturbation("twist", 1)
+
+
+def test_true_error_of_state_is_batoids_departure_at_the_corners(repo_root):
+    """The figure of merit, recomputed here from batoid alone: a 25 um camera piston moves the
+    detector 25 um towards M1 (batoid_rubin's sign), and the error is the mean over the four
+    corner mid-fields of the rms-summed Z4..Z22 change of batoid's wavefront (622 nm, the
+    r band; the annular basis of the 0.61 obscuration)."""
+    import batoid
+    import yaml
+
+    nominal = batoid.Optic.fromYaml("LSST_r.yaml")
+    moved = nominal.withGloballyShiftedOptic("LSSTCamera", np.array([0.0, 0.0, -25e-6]))
+    with open(repo_root / "config" / "sensors" / "lsst_corners.yaml", encoding="utf-8") as f:
+        corners = yaml.safe_load(f)["corners"]
+    per_corner = []
+    for c in corners.values():
+        thx, thy = np.deg2rad(c["mid_deg"])
+        dz = [batoid.zernike(t, thx, thy, 622e-9, jmax=22, eps=0.61, nx=128)[4:23] * 622.0
+              for t in (moved, nominal)]
+        per_corner.append(np.sqrt(np.sum((dz[0] - dz[1]) ** 2)))
+    expected = float(np.mean(per_corner))
+    assert expected > 100.0  # a 25 um piston is several hundred nm of defocus
+    dof = np.zeros(50)
+    dof[5] = 25.0
+    assert true_error_of_state_nm(dof) == pytest.approx(expected, rel=1e-9)
+    # Half the piston, half the error (defocus is linear in it at this size).
+    assert true_error_of_state_nm(dof / 2) == pytest.approx(expected / 2, rel=0.02)

@@ -39,20 +39,30 @@ stamp_ok() {  # stamp_ok NAME HASH -> true when the stamp holds HASH
   [ "$FORCE" != 1 ] && [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]
 }
 stamp_set() { mkdir -p "$STAMPS"; printf '%s\n' "$2" > "$STAMPS/$1"; }
-check_version() {  # check_version "3.11" -> fails unless 3.10 <= v <= 3.13
+check_version() {  # check_version "3.11" -> fails unless 3.11 <= v <= 3.13
+  # 3.11 is the floor of the pinned numpy, scipy, matplotlib and astropy (the ROS wheels
+  # would take 3.10); 3.13 the ceiling of the ROS 2 Jazzy wheels.
   case "$1" in
-    3.10|3.11|3.12|3.13) ;;
-    *) die "Python $1 found; the ROS 2 Jazzy wheels need Python 3.10-3.13 (set PYTHON=...)" ;;
+    3.11|3.12|3.13) ;;
+    *) die "Python $1 found; cwfs_ros needs Python 3.11-3.13 (set PYTHON=...)" ;;
   esac
 }
 
 # 1. venv -------------------------------------------------------------------
+# A venv holds its own absolute path (script headers, the editable install, the share/
+# links below): one made for another checkout (a copied or moved tree) would run that
+# checkout's code, so it is made again.
+if [ -x "$VPY" ] && [ -f "$VENV/pyvenv.cfg" ] && [ -f "$STAMPS/repo" ] \
+   && [ "$(cat "$STAMPS/repo")" != "$REPO" ]; then
+  say "the venv was made for $(cat "$STAMPS/repo"), not $REPO: making it again"
+  rm -rf "$VENV"
+fi
 if [ -x "$VPY" ] && [ -f "$VENV/pyvenv.cfg" ]; then
   vver="$(sed -n 's/^version[_info]* *= *\([0-9]*\.[0-9]*\).*/\1/p' "$VENV/pyvenv.cfg" | head -n1)"
   check_version "$vver"
   say "venv ok (.venv, Python $vver)"
 else
-  command -v "$PYTHON" >/dev/null || die "'$PYTHON' not found; install Python 3.10-3.13 or set PYTHON=..."
+  command -v "$PYTHON" >/dev/null || die "'$PYTHON' not found; install Python 3.11-3.13 or set PYTHON=..."
   pver="$("$PYTHON" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
   check_version "$pver"
   say "creating .venv with $PYTHON ($pver)"
@@ -60,11 +70,16 @@ else
   "$PYTHON" -m venv "$VENV" \
     || die "'$PYTHON -m venv' failed (on Debian/Ubuntu: apt-get install python3-venv)"
 fi
+stamp_set repo "$REPO"
 
-PIP=("$VPY" -m pip install --disable-pip-version-check --no-input -q)
+# Every step is constrained by the lock (all transitive versions, tools/lock_requirements.sh),
+# which is therefore an input of each step's stamp.
+LOCK=requirements/lock.txt
+[ -f "$LOCK" ] || die "$LOCK is missing (tools/lock_requirements.sh writes it)"
+PIP=("$VPY" -m pip install --disable-pip-version-check --no-input -q -c "$LOCK")
 
 # 2. build backend for the editable install (setuptools) ------------------------
-h_build="$(hash_files requirements/build.txt)"
+h_build="$(hash_files requirements/build.txt "$LOCK")"
 if stamp_ok build "$h_build"; then
   say "build tools ok"
 else
@@ -76,7 +91,7 @@ else
 fi
 
 # 3. ROS 2 wheels (own pip step: pip builds every wheel before installing any) --
-h_ros="$(hash_files requirements/ros.txt)"
+h_ros="$(hash_files requirements/ros.txt "$LOCK")"
 if stamp_ok ros "$h_ros"; then
   say "ROS wheels ok"
 else
@@ -88,7 +103,7 @@ else
 fi
 
 # 4. scientific and tooling deps --------------------------------------------
-h_base="$(hash_files requirements/base.txt)"
+h_base="$(hash_files requirements/base.txt "$LOCK")"
 if stamp_ok base "$h_base"; then
   say "base requirements ok"
 else
@@ -108,6 +123,8 @@ else
   say "building cwfs_msgs (msg_defs/ -> build/msg_defs, ~15 s)"
   command -v cmake >/dev/null && { command -v c++ >/dev/null || command -v g++ >/dev/null; } \
     || die "building cwfs_msgs needs cmake and a C/C++ compiler (apt-get install cmake g++)"
+  "$VPY" -c 'import sysconfig, os, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
+    || die "building cwfs_msgs needs the Python headers (Python.h; apt-get install python3-dev)"
   # A cache made for another source or venv location (copied tree) cannot be reused.
   if [ -f "$BUILD_DIR/CMakeCache.txt" ] \
      && ! grep -qxF "CMAKE_HOME_DIRECTORY:INTERNAL=$REPO/msg_defs" "$BUILD_DIR/CMakeCache.txt"; then

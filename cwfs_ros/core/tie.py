@@ -73,8 +73,9 @@ class IterativeFFT:
     :meth:`wavefront_map` runs it literally (and gives the 2-D wavefront the paper values
     the FFT method for); :meth:`solve` applies the same linear map as a precomputed matrix,
     built once per geometry by running the loop's adjoint for each Zernike output.  Both give
-    the same coefficients to rounding (``test_tie`` checks), and the outer loop then costs no
-    more than with the series expansion.
+    the same coefficients to rounding (checked by
+    ``test_estimator.py::test_fft_matrix_equals_literal_iteration``), and the outer loop then
+    costs no more than with the series expansion.
 
     Args:
         shape: (n, n) grid of the pupil points.
