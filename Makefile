@@ -42,8 +42,9 @@ test: venv
 	fi; \
 	exit $$rc
 
+# --check: exit 1 unless the loop converges (x5 within 5 visits, every correction valid).
 demo: venv
-	$(VENV)/bin/cwfs-ros demo
+	$(VENV)/bin/cwfs-ros demo --check
 
 bench: venv
 	@shopt -s nullglob; files=(bench/*.py); \
