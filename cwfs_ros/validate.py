@@ -50,7 +50,7 @@ def add_validate_parser(subparsers: Any, cli_error: type[Exception] = Exception
             "PASS/FAIL line per figure. Exit status 1 if any figure fails."),
     )
     p.add_argument("--quick", action="store_true",
-                   help="few realisations, coarse screens, fewer rays (~8 min on 2 cores)")
+                   help="few realisations, coarse screens, fewer rays (5-8 min on 2 cores)")
     p.add_argument("--out", type=Path, default=Path("out") / "validate",
                    help="report directory (default: %(default)s)")
     p.add_argument("--only", action="append", choices=SECTIONS, metavar="SECTION",
