@@ -92,6 +92,8 @@ DEFAULT_TOPICS: dict[str, str] = {
     "/aos/sim/truth": "cwfs_msgs/msg/SimTruth",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
+# `bag play` plays topics of this type only when they are named (see play()).
+CORRECTION_TYPE = "cwfs_msgs/msg/DofCorrection"
 
 _SEPARATOR = "=" * 80  # between the sections of a concatenated rosbag2 message definition
 _SRV_SUFFIXES = ("_Event", "_Request", "_Response")
@@ -1140,8 +1142,11 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
 
     Args:
         rate: playback speed factor (2 = twice as fast).
-        topics: topics to play (default all). Topics whose message type is not installed are
-            skipped with a warning when playing everything, and an error when named.
+        topics: topics to play (default all but the corrections). Topics whose message type
+            is not installed are skipped with a warning when playing everything, and an error
+            when named. DofCorrection topics are played only when named: a recorded
+            correction played into a running graph would be applied by its actuators (or the
+            simulated camera) a second time.
         loop: start over at the end, until stopped.
         delay_s: wait after creating the publishers, before the first message (gives
             subscribers time to discover them, as ``ros2 bag play --delay``).
@@ -1168,6 +1173,10 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
                            f"(it has {', '.join(bag.topics) or 'none'})")
         classes = {}
         for t in names:
+            if topics is None and bag.topics[t].type == CORRECTION_TYPE:
+                summary.skipped[t] = ("corrections are played only when named (--topics): "
+                                      "actuators listening would apply them again")
+                continue
             cls = _message_class(bag.topics[t].type)
             if cls is None:
                 why = f"message type {bag.topics[t].type} is not installed"
@@ -1322,7 +1331,9 @@ def add_bag_parser(subparsers: Any, cli_error: type[Exception] | None = None
     pl.add_argument("-r", "--rate", type=_positive_float, default=1.0,
                     help="playback speed factor (default: %(default)g)")
     pl.add_argument("--topics", nargs="+", metavar="TOPIC",
-                    help="play only these topics (default: all)")
+                    help="play only these topics (default: all but the DofCorrection "
+                         "topics, which are played only when named: actuators listening "
+                         "would apply a recorded correction again)")
     pl.add_argument("-l", "--loop", action="store_true", help="play in a loop until Ctrl-C")
     pl.add_argument("-d", "--delay", type=_nonnegative_float, default=0.0, metavar="S",
                     help="wait S seconds after creating the publishers (default: 0)")

@@ -330,7 +330,8 @@ def test_play_republishes_bytes_with_original_timing(rate, ros_context, tmp_path
             p.publish = publish
 
     try:
-        summary = B.play(tmp_path / "b", rate=rate, context=ros_context, on_ready=ready)
+        summary = B.play(tmp_path / "b", rate=rate, topics=["/aos/ofc/dof_correction"],
+                         context=ros_context, on_ready=ready)
         wait_for(lambda: len(got) == len(stamps_ms), 5, "every message to arrive")
     finally:
         ex.shutdown(timeout_sec=1)
@@ -410,7 +411,13 @@ def test_cli_record_until_sigint_then_play(ros_domain, tmp_path):
         node.destroy_publisher(pub)
         # --loop until SIGINT: whenever the listener matches the player process, it gets the
         # recorded messages over and over (a fixed delay could be too short on a loaded host).
-        play = run_cli("bag", "play", out, "-l", domain=ros_domain)
+        # Corrections are played only when named: by default there is nothing to play.
+        refused = run_cli("bag", "play", out, domain=ros_domain)
+        _, err = refused.communicate(timeout=60)
+        assert refused.returncode != 0 and "nothing to play" in err, err
+        assert "corrections are played only when named" in err, err
+        play = run_cli("bag", "play", out, "-l", "--topics", "/aos/ofc/dof_correction",
+                       domain=ros_domain)
         try:
             wait_for(lambda: len({m.status for m in got}) == 4 and len(got) >= 8, 30,
                      "two rounds of played messages")

@@ -346,6 +346,66 @@ def test_step_limit_and_range_clip(sm):
     np.testing.assert_allclose(sum(r.dof for r in res), res[-1].dof_total, atol=1e-9)
 
 
+def test_step_limit_holds_when_the_state_is_out_of_range(sm):
+    """A state beyond the DoF ranges (range clipping switched off for a while, then on again)
+    returns into range at the step limit per visit, never in one jump."""
+    spec = C.load_dof_spec()
+    s = solver(sm, kp=0.18, ki=0.0)
+    out = np.zeros(50)
+    out[0], out[5] = 3.0 * spec.range[0], -3.0 * spec.range[5]
+    s.restore((out, np.zeros(50), 0, None, s.ki))
+    y = np.zeros(76)  # no wavefront error: only the range clip asks for a move
+    r = s.step(y)
+    assert r.valid, r.status
+    assert np.all(np.abs(r.dof) <= spec.max_step * (1 + 1e-12))
+    assert r.dof[0] == pytest.approx(-spec.max_step[0]) and r.clipped[0]
+    assert r.dof[5] == pytest.approx(spec.max_step[5]) and r.clipped[5]
+    n = int(np.ceil(2.0 * spec.range[0] / spec.max_step[0]))
+    for _ in range(n):
+        r = s.step(y)
+        assert np.all(np.abs(r.dof) <= spec.max_step * (1 + 1e-12))
+    assert np.all(np.abs(s.dof_total) <= spec.range * (1 + 1e-12))
+
+
+def test_integral_is_bumpless_across_changes_of_ki(sm):
+    """No integral accumulates while ki = 0, and a solver rebuilt with another ki keeps the
+    integral's contribution ki * sum(e): switching integral action on in a converged loop
+    does not kick it."""
+    y = sm.matrix_nm @ perturbation()
+    p_only = solver(sm, kp=0.18, ki=0.0, max_step=None, clip_range=None)
+    for _ in range(5):
+        assert p_only.step(y).valid
+    assert np.all(p_only.integral == 0)
+
+    pi = solver(sm, kp=0.18, ki=0.022, max_step=None, clip_range=None)
+    for _ in range(5):
+        assert pi.step(y).valid
+    doubled = solver(sm, kp=0.18, ki=0.044, max_step=None, clip_range=None)
+    doubled.restore(pi.state())
+    np.testing.assert_allclose(0.044 * doubled.integral, 0.022 * pi.integral, rtol=1e-12)
+    off = solver(sm, kp=0.18, ki=0.0, max_step=None, clip_range=None)
+    off.restore(pi.state())
+    assert np.all(off.integral == 0)
+
+    # A noisy loop converged proportional-only, then ki switched on: the error stays at
+    # its floor (when the unused integral summed the noise, it rose from 95 to 229 nm).
+    rng = np.random.default_rng(5)
+    s = solver(sm, kp=0.18, ki=0.0, max_step=None, clip_range=None)
+    x = perturbation()
+    for _ in range(60):
+        r = s.step(sm.matrix_nm @ x + rng.normal(0.0, 20.0, 76))
+        x = x + r.dof
+    floor = r.wavefront_rms_nm
+    on = solver(sm, kp=0.18, ki=0.022, max_step=None, clip_range=None)
+    on.restore(s.state())
+    worst = 0.0
+    for _ in range(8):
+        r = on.step(sm.matrix_nm @ x + rng.normal(0.0, 20.0, 76))
+        x = x + r.dof
+        worst = max(worst, r.wavefront_rms_nm)
+    assert worst < 1.5 * floor + 10.0, (floor, worst)
+
+
 def test_dof_mask_keeps_excluded_dofs_at_zero(sm):
     mask = np.ones(50, bool)
     mask[[3, 4, 8, 9]] = False  # no tilts
@@ -477,6 +537,24 @@ def test_implausible_wavefront_refused(sm):
     assert s.step(y).valid
 
 
+def test_a_valid_corner_of_zeros_is_refused(sm):
+    """A corner flagged valid but filled with exact zeros is not a measurement (every measured
+    wavefront holds the design's): refused, state unchanged, the corner named."""
+    s = C.OFCSolver(sm, band="r")
+    y = s.intrinsic_nm.copy()
+    assert s.step(y).valid  # the design alone: a perfect telescope, nothing to do
+    before = s.state()
+    y[19:38] = 0.0  # R04 left unfilled
+    res = s.step(y)
+    assert not res.valid and res.status.startswith("implausible_wavefront:"), res.status
+    assert "R04" in res.status and np.all(res.dof == 0)
+    np.testing.assert_array_equal(s.dof_total, before[0])
+    assert s.n_steps == 1
+    # Flagged invalid, the same corner is simply dropped (allow_partial).
+    p = C.OFCSolver(sm, band="r", allow_partial=True)
+    assert p.step(y, [True, False, True, True]).valid
+
+
 def test_overflowing_input_never_reaches_the_state(sm):
     """Without the plausibility limit, finite values near the float64 maximum overflow the
     solve; the step is refused and the state stays finite (it used to become NaN and stay
@@ -506,6 +584,34 @@ def test_solver_from_params_limits():
     assert s.max_abs_zernike_nm is None and s.max_future_s is None
     with pytest.raises(ConfigError, match="max_future_s"):
         solver(C.SensitivityMatrix.from_bundled(), max_future_s=-1.0)
+
+
+@pytest.mark.parametrize("name, value, match", [
+    ("kp", 1.9, r"kp must be in \[0, 1\]"),
+    ("ki", float("nan"), "ki must be in"),
+    ("max_step_scale", -1.0, "max_step_scale must be in"),
+    ("max_abs_zernike_nm", -5.0, "max_abs_zernike_nm must be in"),
+    ("max_future_s", "60", "max_future_s must be a number"),
+    ("n_modes", 12.9, "n_modes must be an integer"),
+    ("n_modes", 0, "n_modes must be in"),
+    ("n_modes", True, "n_modes must be an integer"),
+    ("alpha", 0.0, "alpha must be in"),
+    ("clip_to_range", "false", "clip_to_range must be true or false"),
+    ("allow_partial", 1, "allow_partial must be true or false"),
+    ("dof_mask", ["yes"] * 50, "dof_mask must hold 50 booleans"),
+])
+def test_solver_from_params_refuses_what_the_node_refuses(name, value, match):
+    """The offline replay builds its solver here from a parameter file: a value ofc_node's
+    descriptors refuse (out of range, wrong type) is a ConfigError, not a solver no node
+    could run (a negative max_step_scale silently meant no step limit)."""
+    import yaml
+
+    from cwfs_ros.paths import config_dir
+
+    p = yaml.safe_load((config_dir() / "params.yaml").read_text())["ofc_node"]["ros__parameters"]
+    p = {**p, name: value}
+    with pytest.raises(ConfigError, match=match):
+        C.solver_from_params(lambda n: p[n])
 
 
 def test_normalisation_weights_are_named_not_paths():

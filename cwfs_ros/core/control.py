@@ -871,14 +871,28 @@ class OFCSolver:
         self.last_stamp_ns = None
 
     def state(self) -> tuple:
-        """The controller state (accumulated DoFs, integral, steps, last visit stamp), to
-        carry over into a rebuilt solver with :meth:`restore`."""
-        return self.dof_total.copy(), self.integral.copy(), self.n_steps, self.last_stamp_ns
+        """The controller state (accumulated DoFs, integral, steps, last visit stamp, and the
+        ``ki`` the integral was accumulated with), to carry over into a rebuilt solver with
+        :meth:`restore`."""
+        return (self.dof_total.copy(), self.integral.copy(), self.n_steps, self.last_stamp_ns,
+                self.ki)
 
     def restore(self, state: tuple) -> None:
-        """Put back a :meth:`state`."""
-        dof_total, integral, self.n_steps, self.last_stamp_ns = state
-        self.dof_total, self.integral = dof_total.copy(), integral.copy()
+        """Put back a :meth:`state`, bumpless across a change of ``ki``.
+
+        The integral's contribution to a correction is ``ki * integral``; a solver rebuilt with
+        another ``ki`` rescales the integral so that the contribution stays what it was, rather
+        than jumping with the gain. With ``ki = 0`` there is no integral action, and the
+        integral restarts from zero when it is turned on again.
+        """
+        dof_total, integral, self.n_steps, self.last_stamp_ns, ki = state
+        self.dof_total = dof_total.copy()
+        if self.ki == 0 or ki == 0:
+            self.integral = np.zeros(N_DOF)
+        else:
+            self.integral = integral * (ki / self.ki)
+            if self.max_integral is not None:
+                self.integral = np.clip(self.integral, -self.max_integral, self.max_integral)
 
     def _inverse(self, rows: np.ndarray) -> _Inverse:
         key = np.packbits(rows).tobytes()
@@ -949,6 +963,16 @@ class OFCSolver:
                 return refuse(f"implausible_wavefront: |Z| up to {np.abs(y[big]).max():.4g} nm "
                               f"in {', '.join(big_c)}, beyond max_abs_zernike_nm "
                               f"{self.max_abs_zernike_nm:g}", corners=corners)
+        # A measured total wavefront holds the design's (tens to hundreds of nm at the
+        # corners): a valid-flagged corner of exact zeros is an unfilled field, not a
+        # measurement, and solving it would correct a perfect telescope by minus its design.
+        blank = [names[k] for k in range(self.n_fields)
+                 if cv[k] and not np.any(y[k * N_ZK:(k + 1) * N_ZK])
+                 and np.any(self.intrinsic_nm[k * N_ZK:(k + 1) * N_ZK])]
+        if blank:
+            return refuse(f"implausible_wavefront: {', '.join(blank)} flagged valid but all "
+                          f"{N_ZK} terms are exactly 0 (an unfilled corner: a measurement "
+                          "holds the design wavefront)", corners=corners)
         r_full = np.where(rows, y - self.intrinsic_nm, np.nan)
         r = r_full[rows]
         n_used = int(cv.sum())
@@ -1030,7 +1054,9 @@ class OFCSolver:
                              est.dof_error, np.zeros(N_DOF, dtype=bool), est.condition,
                              est.corners_used, time.perf_counter() - t0)
         e = est.dof_error
-        integral = self.integral + e
+        # Without integral action (ki = 0) nothing accumulates: an integral summed unused
+        # would kick the loop by ki * sum(e) the moment ki is turned on.
+        integral = self.integral + e if self.ki != 0 else self.integral.copy()
         if self.max_integral is not None:
             integral = np.clip(integral, -self.max_integral, self.max_integral)
         raw = -(self.kp * e + self.ki * integral)
@@ -1046,6 +1072,13 @@ class OFCSolver:
             total = np.clip(total, -self.clip_range, self.clip_range)
         total[~self.dof_mask] = self.dof_total[~self.dof_mask]
         u = total - self.dof_total
+        if self.max_step is not None and np.any(np.abs(u) > self.max_step):
+            # The range clip moved a state that was out of range (range clipping switched on
+            # again, or the ranges narrowed) back by more than a step: the step limit still
+            # holds, and the state returns into range over several visits.
+            clipped |= np.abs(u) > self.max_step
+            u = np.clip(u, -self.max_step, self.max_step)
+            total = self.dof_total + u
         # anti-windup: a DoF whose correction was limited does not integrate this visit
         integral[clipped] = self.integral[clipped]
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(total))
@@ -1093,6 +1126,42 @@ def sensitivity_for_source(source: str) -> SensitivityMatrix:
     raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
 
 
+# Ranges of ofc_node's numeric parameters, in one place: the node declares them in its
+# ParameterDescriptors and solver_from_params checks them, so that the offline replay of a bag
+# refuses the values the node refuses instead of running a solver no node could run.
+OFC_PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "n_modes": (1, N_DOF),
+    "alpha": (1e-9, 1.0),
+    "kp": (0.0, 1.0),
+    "ki": (0.0, 1.0),
+    "max_step_scale": (0.0, 100.0),
+    "max_condition": (1.0, 1e15),
+    "max_abs_zernike_nm": (0.0, 1e7),
+    "max_future_s": (0.0, 1e7),
+}
+
+
+def _ranged(get: Callable[[str], Any], name: str, integer: bool = False) -> float:
+    """The parameter ``name`` checked as the node's descriptor checks it: a number (an integer
+    for an integer parameter; never a bool or a string) within OFC_PARAM_RANGES."""
+    v = get(name)
+    kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, kinds):
+        raise ConfigError(f"{name} must be {'an integer' if integer else 'a number'}, "
+                          f"got {v!r}")
+    lo, hi = OFC_PARAM_RANGES[name]
+    if not lo <= v <= hi:  # NaN fails too
+        raise ConfigError(f"{name} must be in [{lo:g}, {hi:g}], got {v!r}")
+    return float(v)
+
+
+def _flag(get: Callable[[str], Any], name: str) -> bool:
+    v = get(name)
+    if not isinstance(v, (bool, np.bool_)):
+        raise ConfigError(f"{name} must be true or false, got {v!r}")
+    return bool(v)
+
+
 def solver_from_params(get: Callable[[str], Any]) -> OFCSolver:
     """An :class:`OFCSolver` from the ofc_node's parameter values, ``get(name) -> value``.
 
@@ -1107,21 +1176,22 @@ def solver_from_params(get: Callable[[str], Any]) -> OFCSolver:
     band = str(get("band"))
     if band not in BANDS:
         raise ConfigError(f"band must be one of {BANDS}, got {band!r}")
-    mask = np.asarray(list(get("dof_mask")), dtype=bool)
-    if mask.shape != (N_DOF,):
-        raise ConfigError(f"dof_mask must hold {N_DOF} booleans, got {mask.size}")
-    scale = float(get("max_step_scale"))
+    raw_mask = list(get("dof_mask"))
+    if len(raw_mask) != N_DOF or not all(isinstance(b, (bool, np.bool_)) for b in raw_mask):
+        raise ConfigError(f"dof_mask must hold {N_DOF} booleans, got {raw_mask!r}")
+    mask = np.asarray(raw_mask, dtype=bool)
+    scale = _ranged(get, "max_step_scale")
     return OFCSolver(
         sensitivity_for_source(str(get("matrix_source"))), band=band, method=str(get("method")),
-        n_modes=int(get("n_modes")), alpha=float(get("alpha")),
-        weights=str(get("weights")), kp=float(get("kp")),
-        ki=float(get("ki")), dof_mask=mask,
-        clip_range="dof.yaml" if get("clip_to_range") else None,
+        n_modes=int(_ranged(get, "n_modes", integer=True)), alpha=_ranged(get, "alpha"),
+        weights=str(get("weights")), kp=_ranged(get, "kp"),
+        ki=_ranged(get, "ki"), dof_mask=mask,
+        clip_range="dof.yaml" if _flag(get, "clip_to_range") else None,
         max_step=spec.max_step * scale if scale > 0 else None,
-        allow_partial=bool(get("allow_partial")),
-        max_condition=float(get("max_condition")),
-        max_abs_zernike_nm=_positive_or_none(get("max_abs_zernike_nm")),
-        max_future_s=_positive_or_none(get("max_future_s")),
+        allow_partial=_flag(get, "allow_partial"),
+        max_condition=_ranged(get, "max_condition"),
+        max_abs_zernike_nm=_positive_or_none(_ranged(get, "max_abs_zernike_nm")),
+        max_future_s=_positive_or_none(_ranged(get, "max_future_s")),
         dof_spec=spec)
 
 

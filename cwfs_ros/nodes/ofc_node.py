@@ -114,35 +114,36 @@ class OfcNode(Node):
         d("method", describe("Pseudo-inverse: tsvd (truncated SVD) or tikhonov.",
                                      constraints="tsvd | tikhonov"))
         d("n_modes", describe("Singular modes kept by the truncated SVD.",
-                                  int_range=(1, C.N_DOF)))
+                                  int_range=C.OFC_PARAM_RANGES["n_modes"]))
         d("alpha", describe(
             "Tikhonov regulariser, as a fraction of the largest normalised singular value.",
-            fp_range=(1e-9, 1.0)))
+            fp_range=C.OFC_PARAM_RANGES["alpha"]))
         d("weights", describe(
             "DoF normalisation weights: range-fwhm (ts_ofc), range (dof.yaml) or none.",
             constraints="range-fwhm | range | none"))
-        d("kp", describe("Proportional gain.", fp_range=(0.0, 1.0)))
-        d("ki", describe("Integral gain (0 = pure P controller).", fp_range=(0.0, 1.0)))
+        d("kp", describe("Proportional gain.", fp_range=C.OFC_PARAM_RANGES["kp"]))
+        d("ki", describe("Integral gain (0 = pure P controller).",
+                         fp_range=C.OFC_PARAM_RANGES["ki"]))
         d("dof_mask", describe(
             "50 booleans: False DoFs are not used and never move (order of dof.yaml)."))
         d("allow_partial", describe(
             "Use the valid corners only when some are invalid (else refuse the visit)."))
         d("max_step_scale", describe(
             "Per-visit step limit as a multiple of dof.yaml's max_step (0 = no limit).",
-            fp_range=(0.0, 100.0)))
+            fp_range=C.OFC_PARAM_RANGES["max_step_scale"]))
         d("clip_to_range", describe(
             "Keep the accumulated DoF state within dof.yaml's ranges."))
         d("max_condition", describe(
             "Refuse when the effective condition number of the inverse exceeds this.",
-            fp_range=(1.0, 1e15)))
+            fp_range=C.OFC_PARAM_RANGES["max_condition"]))
         d("max_abs_zernike_nm", describe(
             "Refuse a visit whose used corners hold a Zernike term beyond this [nm] "
             "(0 = no limit): finite but absurd input is refused, not solved.",
-            fp_range=(0.0, 1e7)))
+            fp_range=C.OFC_PARAM_RANGES["max_abs_zernike_nm"]))
         d("max_future_s", describe(
             "Refuse a visit stamped more than this ahead of the node's clock [s] (0 = no "
             "limit). Visits not newer than the last applied one are always refused.",
-            fp_range=(0.0, 1e7)))
+            fp_range=C.OFC_PARAM_RANGES["max_future_s"]))
         d("dry_run", describe(
             "Compute and publish corrections flagged dry_run, without advancing the state."))
         d("frame_id", describe("frame_id of DofCorrection."))
