@@ -325,6 +325,9 @@ def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, s
     (v2,) = of(vectors, T + SEC)
     assert list(v2.corner_valid) == [True, True, False, True]
     assert "R40 bad_corner_wavefront" in v2.status
+    # ...and the producer's fault is reported, not only absorbed into the vector.
+    assert wf.rejected.counts["bad_corner_wavefront"] == 1, dict(wf.rejected.counts)
+    assert "flagged valid" in wf.rejected.last_message
 
 
 def test_wavefront_node_refuses_to_start_with_a_missing_selection_file(ros_context, tmp_path):
@@ -363,3 +366,110 @@ def test_a_failing_visit_timeout_pass_is_reported_not_raised(ros_context):
         assert wf.rejected.counts["internal_error"] == 1
     finally:
         wf.destroy_node()
+
+
+def _capture(pub) -> list:
+    """Every message ``pub`` publishes (the node's own publisher, wrapped in place)."""
+    got: list = []
+    real = pub.publish
+
+    def publish(msg):
+        real(msg)
+        got.append(msg)
+
+    pub.publish = publish
+    return got
+
+
+def test_incomplete_visits_and_unusable_stamps_are_reported(ros_context):
+    """Callbacks called directly (no DDS needed): a visit published without the corners other
+    producers should have sent puts /diagnostics at WARN; an image or remote corner whose
+    stamp no output could carry (nanosec >= 1e9) is refused as bad_stamp before pairing,
+    with nothing published and nothing raised."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    wf = WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1),
+        Parameter("visit_timeout_s", value=0.5)])
+    try:
+        corners, vectors = _capture(wf.pub_corner["R00"]), _capture(wf.pub_vector)
+        wait_for(lambda: wf.ready, 60, "warm-up")
+        donut = synthetic_donut(160, 60.0, 0.61)
+        for s in ("intra", "extra"):
+            wf._image_callback("R00", s)(image_msg(donut, T))
+        wait_for(lambda: len(corners) == 1, 30, "R00's estimate")
+        assert corners[0].valid, corners[0].status
+        deadline = time.monotonic() + 10
+        while not vectors and time.monotonic() < deadline:
+            wf._expire()
+            time.sleep(0.05)
+        (v,) = vectors
+        assert list(v.corner_valid) == [True, False, False, False]
+        assert not wf.rejected.counts  # nothing was rejected: the others just never came
+        d = wf.diagnostics()
+        assert d.level == DiagnosticStatus.WARN and "incomplete" in d.message, d.message
+
+        bad = image_msg(donut, T + SEC)
+        bad.header.stamp.sec, bad.header.stamp.nanosec = 2**31 - 1, 2**32 - 1
+        wf._image_callback("R00", "intra")(bad)
+        remote = CornerWavefront(corner="R04", valid=True, status="ok")
+        remote.header.stamp.nanosec = 1_000_000_000
+        remote.noll, remote.zernikes_nm = list(range(4, 23)), [1.0] * 19
+        wf._remote_corner_callback("R04")(remote)
+        assert wf.rejected.counts["bad_stamp"] == 2, dict(wf.rejected.counts)
+        assert "nanosec" in wf.rejected.last_message
+        assert wf.pairing.pending_count() == 0 and len(corners) == 1 and len(vectors) == 1
+    finally:
+        wf.destroy_node()
+
+
+def test_a_worker_lost_during_warm_up_is_warmed_again(ros_context, monkeypatch):
+    """A worker that dies while warming up (killed, out of memory) is restarted by the next
+    job: the node warms the corner again instead of reporting ERROR for good."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from cwfs_ros.core.corner_pool import CornerPool
+
+    real = CornerPool.warm_up
+    failed: list[str] = []
+
+    def first_attempt_dies(self, fields, settings, stamp_px=0):
+        fresh = [c for c in fields if c not in failed]
+        if fresh:
+            failed.extend(fresh)
+            f: Future = Future()
+            f.set_exception(BrokenProcessPool("a child process terminated abruptly"))
+            return [f for _ in fresh]
+        return real(self, fields, settings, stamp_px)
+
+    monkeypatch.setattr(CornerPool, "warm_up", first_attempt_dies)
+    wf = WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1)])
+    try:
+        wait_for(lambda: wf.ready, 60, "the warm-up, retried")
+        assert failed == ["R00"]
+        assert "error" not in wf.diagnostics().message
+    finally:
+        wf.destroy_node()
+
+
+def test_ofc_node_refuses_a_vector_whose_stamp_no_correction_could_carry(ros_context):
+    """nanosec >= 1e9: refused before the step (a step whose correction then failed to
+    publish would leave the controller state ahead of the telescope), counted, not raised."""
+    ofc = OfcNode(context=ros_context)
+    try:
+        sent = _capture(ofc.pub)
+        m = WavefrontVector()
+        m.header.stamp.sec, m.header.stamp.nanosec = 2**31 - 1, 2**32 - 1
+        m.zernikes_nm = np.asarray(ofc.solver.intrinsic_nm, dtype=float)
+        m.corner_valid = [True] * 4
+        m.corners = ["R00", "R04", "R40", "R44"]
+        ofc._on_vector(m)
+        assert ofc.refused.counts["bad_stamp"] == 1 and "nanosec" in ofc.last_status
+        assert ofc.solver.n_steps == 0 and not sent
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(T, SEC)
+        ofc._on_vector(m)  # the same vector, properly stamped, is applied
+        assert ofc.solver.n_steps == 1 and len(sent) == 1 and sent[0].valid
+    finally:
+        ofc.destroy_node()

@@ -363,7 +363,7 @@ class VisitAssembler:
         if c not in CORNERS:
             return None, Rejection("unknown_corner", f"{where}: corner must be one of "
                                    f"{', '.join(CORNERS)}", c, "", t)
-        entry = _checked(entry)
+        entry = checked_entry(entry)
         closed = self._closed.find(t, self.tolerance_ns)
         if closed is not None:
             return None, Rejection("late", f"{where}: arrived after the visit was published "
@@ -412,7 +412,7 @@ class VisitAssembler:
         return VisitVector(visit.stamp_ns, z, tuple(valid), tuple(statuses), status, complete)
 
 
-def _checked(e: CornerEntry) -> CornerEntry:
+def checked_entry(e: CornerEntry) -> CornerEntry:
     """A valid entry must carry 19 finite Zernikes; otherwise it is treated as invalid."""
     if not e.valid:
         return e

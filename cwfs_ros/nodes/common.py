@@ -149,6 +149,20 @@ def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def stamp_problem(stamp: Time) -> str | None:
+    """Why a header stamp cannot be used, or None.
+
+    builtin_interfaces/Time requires ``nanosec`` below 1e9, but nothing enforces it: such a
+    stamp names a time that does not round-trip (``ns_to_stamp`` carries the excess into
+    ``sec``, which can overflow its int32), so an output stamped with it would be refused at
+    publication or go out with another visit's stamp.
+    """
+    if int(stamp.nanosec) >= 1_000_000_000:
+        return (f"bad_stamp: nanosec {int(stamp.nanosec)} is not below 1e9 "
+                "(builtin_interfaces/Time)")
+    return None
+
+
 def ns_to_stamp(ns: int) -> Time:
     sec, nsec = divmod(int(ns), 1_000_000_000)
     return Time(sec=int(sec), nanosec=int(nsec))

@@ -46,6 +46,7 @@ from .common import (
     diagnostic_status,
     diagnostics_array,
     result,
+    stamp_problem,
     stamp_to_ns,
 )
 from .convert import dof_correction_msg, vector_from_msg
@@ -181,6 +182,18 @@ class OfcNode(Node):
 
     # ------------------------------------------------------------------ control
     def _on_vector(self, msg: WavefrontVector) -> None:
+        bad = stamp_problem(msg.header.stamp)
+        if bad is not None:
+            # No DofCorrection can carry this stamp: refused, counted and logged, and the
+            # controller state is not touched (a step whose correction could not be
+            # published would leave the state ahead of the telescope).
+            with self._lock:
+                self.stats["vectors"] += 1
+                self.stats["corrections_refused"] += 1
+                self.last_status = bad
+            self.refused.add("bad_stamp", bad)
+            self.get_logger().warning(f"visit refused: {bad}")
+            return
         stamp = stamp_to_ns(msg.header.stamp)
         try:
             z, valid, problem = vector_from_msg(msg)

@@ -57,6 +57,7 @@ from cwfs_ros.core.visits import (
     Rejection,
     VisitAssembler,
     VisitVector,
+    checked_entry,
     load_corner_fields,
 )
 
@@ -74,6 +75,7 @@ from .common import (
     diagnostics_array,
     image_qos,
     result,
+    stamp_problem,
     stamp_to_ns,
 )
 from .convert import (
@@ -90,6 +92,7 @@ _SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px"
                     "seeing_fwhm_arcsec")
 _SOLVERS = ("exp", "fft", "lsq")
 _INPUT_MODES = ("auto", "stamps", "frames")
+_WARM_ATTEMPTS = 2  # a corner's warm-up is retried once (a worker killed while warming)
 
 
 def image_topic(corner: str, side: str) -> str:
@@ -144,6 +147,9 @@ class WavefrontNode(Node):
                       "visits_published": 0, "visits_incomplete": 0, "frame_pairs": 0}
         self.last_compute_ms: dict[str, float] = {}
         self.last_status: dict[str, str] = {}
+        # (monotonic time, what was missing) of the last visit published incomplete: WARN on
+        # /diagnostics for a minute, as a producer that stopped is not an input rejected.
+        self.last_incomplete: tuple[float, str] | None = None
 
         img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
         # Worker processes, warmed up in the background.
@@ -328,24 +334,40 @@ class WavefrontNode(Node):
             gen = self._warm_generation
             self._warm = {}
         t0 = time.monotonic()
-        futures = self.pool.warm_up(
-            {c: (self.fields[c]["intra"], self.fields[c]["extra"]) for c in self.corners},
-            self.settings)
-        for f in futures:
-            f.add_done_callback(lambda f, gen=gen: self._warm_done(f, gen, t0))
+        for c in self.corners:
+            self._warm_corner(c, gen, t0, attempt=1)
 
-    def _warm_done(self, f: Future, gen: int, t0: float) -> None:
+    def _warm_corner(self, corner: str, gen: int, t0: float, attempt: int) -> None:
+        (f,) = self.pool.warm_up({corner: (self.fields[corner]["intra"],
+                                           self.fields[corner]["extra"])}, self.settings)
+        f.add_done_callback(lambda f: self._warm_done(f, corner, gen, t0, attempt))
+
+    def _warm_done(self, f: Future, corner: str, gen: int, t0: float, attempt: int) -> None:
         try:
             info = f.result()
         except BaseException as exc:  # noqa: BLE001
-            info = {"corner": "?", "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+            info = {"corner": corner, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        if not info.get("ok") and attempt < _WARM_ATTEMPTS:
+            # A worker that died during its warm-up (killed, out of memory) is restarted by
+            # the next job it is given: warm it again rather than report ERROR for good.
+            with self._lock:
+                current = gen == self._warm_generation
+            if current:
+                self.get_logger().warning(f"warm-up of {corner} failed ({info.get('error')}); "
+                                          f"retrying ({attempt + 1}/{_WARM_ATTEMPTS})")
+                try:
+                    self._warm_corner(corner, gen, t0, attempt + 1)
+                    return
+                except Exception as exc:  # noqa: BLE001 - e.g. the pool is shut down
+                    info = {"corner": corner, "ok": False,
+                            "error": f"{type(exc).__name__}: {exc}"}
         with self._lock:
             if gen != self._warm_generation:
                 return
-            self._warm[info["corner"]] = info
+            self._warm[corner] = info
             done = len(self._warm) == len(self.corners)
         if not info.get("ok"):
-            self.get_logger().error(f"warm-up of {info['corner']} failed: {info.get('error')}")
+            self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
         if done:
             self.get_logger().info(f"workers warm after {time.monotonic() - t0:.2f} s")
 
@@ -367,6 +389,11 @@ class WavefrontNode(Node):
         return cb
 
     def _on_image(self, msg: Image, corner: str, side: str) -> None:
+        bad = stamp_problem(msg.header.stamp)
+        if bad is not None:  # no output could carry this stamp: refused before pairing
+            self._reject(Rejection("bad_stamp", f"{side} image of {corner}: {bad}", corner,
+                                   side, 0), warn=True)
+            return
         rec = image_record_from_msg(msg, corner, side, time.monotonic())
         if rec.error:
             self._reject(Rejection(rec.error.split(":", 1)[0], f"{side} image of {corner}: "
@@ -419,7 +446,14 @@ class WavefrontNode(Node):
         try:
             self._publish_outcome(f.result(), frame=frame)
         except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f"publishing a corner result failed: {exc}")
+            self._publish_failed(exc)
+
+    def _publish_failed(self, exc: BaseException) -> None:
+        """A corner result that could not be published: counted and reported like any
+        rejection (the log alone would leave /diagnostics saying all is well)."""
+        self.get_logger().error(f"publishing a corner result failed: {exc}")
+        self._reject(Rejection("publish_failed", f"a corner result could not be published: "
+                               f"{type(exc).__name__}: {exc}"))
 
     def _publish_outcome(self, out: CornerOutcome, frame: str = "", count: bool = True) -> None:
         """Publish a corner's result (and assemble it). ``count``: count an invalid one as a
@@ -447,13 +481,26 @@ class WavefrontNode(Node):
         serves itself, with a wavefront measured elsewhere: it is rejected."""
         def on_msg(msg: CornerWavefront) -> None:
             try:
+                bad = stamp_problem(msg.header.stamp)
+                if bad is not None:
+                    self._reject(Rejection("bad_stamp", f"a CornerWavefront of {corner}: {bad}",
+                                           corner, "", 0), warn=True)
+                    return
                 if msg.corner != corner:
                     self._reject(Rejection(
                         "corner_mismatch", f"a CornerWavefront on {corner}'s topic claims corner "
                         f"{msg.corner!r}: not assembled", corner, "",
                         stamp_to_ns(msg.header.stamp)), warn=True)
                     return
-                self._assemble(corner_entry_from_msg(msg))
+                entry = corner_entry_from_msg(msg)
+                checked = checked_entry(entry)
+                if msg.valid and not checked.valid:
+                    # Assembled as invalid (its corner is then left out of the solve), and
+                    # reported: a producer sending unusable results flagged valid is broken.
+                    self._reject(Rejection("bad_corner_wavefront", f"a CornerWavefront of "
+                                           f"{corner} flagged valid: {checked.status}", corner,
+                                           "", entry.stamp_ns), warn=True)
+                self._assemble(checked)
             except Exception as exc:  # noqa: BLE001 - a message must never crash the node
                 self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
         return on_msg
@@ -480,6 +527,8 @@ class WavefrontNode(Node):
         for r in closures:
             self._reject(r, warn=True)
         if not vec.complete:
+            with self._lock:
+                self.last_incomplete = (time.monotonic(), f"visit {vec.stamp_ns}: {vec.status}")
             self.get_logger().warning(f"visit {vec.stamp_ns} published incomplete: {vec.status}")
         self.pub_vector.publish(wavefront_vector_msg(vec, self.frame_id))
 
@@ -497,9 +546,12 @@ class WavefrontNode(Node):
         for r in unpaired:
             self._reject(r, warn=True)
             f = self.fields[r.corner]
-            self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
-                                                  f["intra"], f["extra"], self.settings.solver),
-                                  count=False)
+            try:  # one failure must not stop the others from being reported
+                self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason,
+                                                      r.message, f["intra"], f["extra"],
+                                                      self.settings.solver), count=False)
+            except Exception as exc:  # noqa: BLE001
+                self._publish_failed(exc)
         if self.assembler is not None:
             with self._lock:
                 due = self.assembler.expire(now)
@@ -520,6 +572,7 @@ class WavefrontNode(Node):
             pending_visits = self.assembler.pending_count() if self.assembler else 0
             compute = dict(self.last_compute_ms)
             last = dict(self.last_status)
+            incomplete = self.last_incomplete
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
             level, state = ERROR, "error"
@@ -534,6 +587,9 @@ class WavefrontNode(Node):
         elif self.rejected.recent(10.0):
             level, state = WARN, "ready"
             message = f"ready; recently rejected input: {self.rejected.last_message}"
+        elif incomplete is not None and time.monotonic() - incomplete[0] < 60.0:
+            level, state = WARN, "ready"
+            message = f"ready; a recent visit was published incomplete: {incomplete[1]}"
         else:
             level, state, message = OK, "ready", "ready"
         values = [("state", state), ("corners", " ".join(self.corners)),
