@@ -396,9 +396,13 @@ def test_incomplete_visits_and_unusable_stamps_are_reported(ros_context):
         wait_for(lambda: wf.ready, 60, "warm-up")
         donut = synthetic_donut(160, 60.0, 0.61)
         for s in ("intra", "extra"):
-            wf._image_callback("R00", s)(image_msg(donut, T))
+            m = image_msg(donut, T)
+            m.header.frame_id = f"camera_R00_{s}"  # the camera's own frame names
+            wf._image_callback("R00", s)(m)
         wait_for(lambda: len(corners) == 1, 30, "R00's estimate")
         assert corners[0].valid, corners[0].status
+        # The Zernikes are in the focal-plane frame, not the camera's: the node's frame_id.
+        assert corners[0].header.frame_id == wf.frame_id == "focal_plane"
         deadline = time.monotonic() + 10
         while not vectors and time.monotonic() < deadline:
             wf._expire()
@@ -473,3 +477,33 @@ def test_ofc_node_refuses_a_vector_whose_stamp_no_correction_could_carry(ros_con
         assert ofc.solver.n_steps == 1 and len(sent) == 1 and sent[0].valid
     finally:
         ofc.destroy_node()
+
+
+def test_a_half_visit_closed_by_the_visit_timeout_is_published_on_its_corner(ros_context):
+    """A visit started by a remote corner times out while R00's intra image still waits for
+    its extra: the image is dropped as unpaired, and R00's topic says so (as when the
+    pairing timeout drops it), instead of carrying nothing for that visit."""
+    wf = WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1),
+        Parameter("visit_timeout_s", value=1.0)])
+    try:
+        corners, vectors = _capture(wf.pub_corner["R00"]), _capture(wf.pub_vector)
+        wait_for(lambda: wf.ready, 60, "warm-up")
+        remote = CornerWavefront(corner="R04", valid=True, status="ok")
+        remote.header.stamp.sec, remote.header.stamp.nanosec = divmod(T, SEC)
+        remote.noll, remote.zernikes_nm = list(range(4, 23)), [1.0] * 19
+        wf._remote_corner_callback("R04")(remote)
+        time.sleep(0.5)
+        wf._image_callback("R00", "intra")(image_msg(synthetic_donut(160, 60.0, 0.61), T))
+        deadline = time.monotonic() + 10
+        while not vectors and time.monotonic() < deadline:
+            wf._expire()
+            time.sleep(0.05)
+        (v,) = vectors
+        assert list(v.corner_valid) == [False, True, False, False]
+        (m,) = corners
+        assert not m.valid and m.status.startswith("unpaired"), m.status
+        assert stamp_to_ns(m.header.stamp) == T
+        assert dict(wf.rejected.counts) == {"unpaired": 1}
+    finally:
+        wf.destroy_node()

@@ -120,6 +120,43 @@ def test_images_older_than_the_tracked_history_are_late():
     assert rej.reason == "late" and "older than every visit" in rej.message
 
 
+def test_a_clock_that_went_back_restarts_the_history_instead_of_locking_out():
+    """A camera or simulator restarted with its clock a day back: its images are older than
+    every visit remembered, but far beyond any lateness (CLOCK_RESET_S behind the newest
+    visit): the corner's history is cleared with a clock_jump notice and they pair again.
+    Before, every later image was refused as late until the stamps caught up (a day)."""
+    sec, day = 1_000_000_000, 86_400_000_000_000
+    pb = PairingBuffer(tolerance_ns=MS, history=3)
+    for k in range(1, 5):
+        pb.add(img("R00", "intra", T0 + k * 30 * sec))
+        pb.add(img("R00", "extra", T0 + k * 30 * sec))
+    # A minute late: still refused as late (within CLOCK_RESET_S).
+    _, rej = pb.add(img("R00", "intra", T0 + 30 * sec - 60 * sec))
+    assert rej.reason == "late"
+    back = T0 - day
+    pair, notice = pb.add(img("R00", "intra", back))
+    # The newest visit was T0 + 120 s: 86,520 s after this image.
+    assert pair is None and notice.reason == "clock_jump" and "86520 s" in notice.message
+    pair, rej = pb.add(img("R00", "extra", back))
+    assert rej is None and pair.stamp_ns == back
+    for k in range(1, 5):  # and the following visits pair as usual
+        pb.add(img("R00", "intra", back + k * 30 * sec))
+        pair, rej = pb.add(img("R00", "extra", back + k * 30 * sec))
+        assert rej is None and pair is not None
+
+    va = VisitAssembler(tolerance_ns=MS, history=2)
+    for k in range(1, 4):
+        for c in CORNERS:
+            va.add(CornerEntry(c, T0 + k * 30 * sec, zk(0), True, "ok"), 1.0)
+    _, rej = va.add(CornerEntry("R00", T0 - 60 * sec, zk(0), True, "ok"), 1.0)
+    assert rej.reason == "late"
+    vec, notice = va.add(CornerEntry("R00", back, zk(0), True, "ok"), 1.0)
+    assert vec is None and notice.reason == "clock_jump"
+    for c in CORNERS[1:]:
+        vec, rej = va.add(CornerEntry(c, back, zk(0), True, "ok"), 1.0)
+    assert rej is None and vec.complete and vec.stamp_ns == back
+
+
 def test_unknown_corner_and_side_are_rejected():
     pb = PairingBuffer(corners=("R00",))
     assert pb.add(img("R44", "intra", T0))[1].reason == "unknown_corner"

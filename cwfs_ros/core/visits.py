@@ -175,6 +175,36 @@ class _Closed:
             return None
         return min(self._items)
 
+    def newest(self) -> int | None:
+        return max(self._items) if self._items else None
+
+    def clear(self) -> None:
+        self._items.clear()
+
+    def clock_jump(self, t: int, tol: int, reset_ns: int) -> int | None:
+        """How far (ns) stamp ``t`` lies behind the newest visit, when it is older than every
+        visit remembered (a late image would be refused for good) and by more than
+        ``reset_ns``: then the source's clock went back (a restarted camera or simulator, a
+        corrected clock), and refusing it as late would refuse every later visit too, until
+        its stamps caught up with the old ones.  None otherwise."""
+        oldest = self.oldest()
+        if oldest is None or t >= oldest - tol:
+            return None
+        behind = max(self._items) - t
+        return behind if behind > reset_ns else None
+
+
+# A stamp this far behind the newest visit, and older than every visit remembered, is a clock
+# that went back, not a late image (visits come every ~30-40 s; no image is 10 minutes late).
+CLOCK_RESET_S = 600.0
+
+
+def _clock_jump_notice(where: str, behind_ns: int, corner: str, side: str,
+                       t: int) -> Rejection:
+    return Rejection("clock_jump", f"{where}: {behind_ns / 1e9:.0f} s before the newest visit: "
+                     "the source's clock went back; the visit history is cleared and its "
+                     "images are taken again", corner, side, t)
+
 
 class PairingBuffer:
     """Pairs intra and extra images per corner by stamp.
@@ -188,10 +218,12 @@ class PairingBuffer:
     """
 
     def __init__(self, corners: Sequence[str] = CORNERS, *, tolerance_ns: int = 1_000_000,
-                 timeout_s: float = 2.0, history: int = 256) -> None:
+                 timeout_s: float = 2.0, history: int = 256,
+                 clock_reset_s: float = CLOCK_RESET_S) -> None:
         self.corners = tuple(corners)
         self.tolerance_ns = int(tolerance_ns)
         self.timeout_s = float(timeout_s)
+        self.clock_reset_ns = int(clock_reset_s * 1e9)
         self._pending: dict[str, dict[str, list[ImageRecord]]] = {
             c: {s: [] for s in SIDES} for c in self.corners}
         self._closed = {c: _Closed(history) for c in self.corners}
@@ -200,7 +232,9 @@ class PairingBuffer:
         return sum(len(v) for sides in self._pending.values() for v in sides.values())
 
     def add(self, rec: ImageRecord) -> tuple[PairReady | None, Rejection | None]:
-        """Add one image; return the completed pair, or why the image was not kept."""
+        """Add one image; return the completed pair (or None) and why the image was not kept
+        (or None), or a ``clock_jump`` notice when it was kept after its source's clock went
+        back."""
         c, side, t = rec.corner, rec.side, int(rec.stamp_ns)
         where = f"{side} image of {c} at stamp {format_stamp(t)}"
         if c not in self._pending:
@@ -217,10 +251,15 @@ class PairingBuffer:
         if closed is not None:
             return None, Rejection("late", f"{where}: arrived after that visit was closed "
                                    f"({closed})", c, side, t)
+        notice = None
         oldest = self._closed[c].oldest()
         if oldest is not None and t < oldest - tol:
-            return None, Rejection("late", f"{where}: older than every visit still tracked",
-                                   c, side, t)
+            behind = self._closed[c].clock_jump(t, tol, self.clock_reset_ns)
+            if behind is None:
+                return None, Rejection("late", f"{where}: older than every visit still "
+                                       "tracked", c, side, t)
+            self._closed[c].clear()
+            notice = _clock_jump_notice(where, behind, c, side, t)
         same = self._pending[c][side]
         if any(abs(r.stamp_ns - t) <= tol for r in same):
             return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
@@ -234,11 +273,11 @@ class PairingBuffer:
                 match = r
         if match is None:
             same.append(rec)
-            return None, None
+            return None, notice
         others.remove(match)
         intra, extra = (rec, match) if side == "intra" else (match, rec)
         self._closed[c].add(intra.stamp_ns, "paired")
-        return PairReady(c, intra.stamp_ns, intra, extra), None
+        return PairReady(c, intra.stamp_ns, intra, extra), notice
 
     def close(self, corner: str, stamp_ns: int, how: str) -> list[Rejection]:
         """Close a visit of a corner from outside (e.g. the assembler timed it out).
@@ -338,9 +377,10 @@ class VisitAssembler:
     """
 
     def __init__(self, *, tolerance_ns: int = 1_000_000, timeout_s: float = 2.0,
-                 history: int = 256) -> None:
+                 history: int = 256, clock_reset_s: float = CLOCK_RESET_S) -> None:
         self.tolerance_ns = int(tolerance_ns)
         self.timeout_s = float(timeout_s)
+        self.clock_reset_ns = int(clock_reset_s * 1e9)
         self._visits: list[_Visit] = []
         self._closed = _Closed(history)
 
@@ -357,7 +397,8 @@ class VisitAssembler:
 
     def add(self, entry: CornerEntry, now: float) -> tuple[VisitVector | None,
                                                             Rejection | None]:
-        """Add a corner result; return the visit if it is now complete."""
+        """Add a corner result; return the visit if it is now complete, and why the result
+        was not kept (or a ``clock_jump`` notice when it was, after its clock went back)."""
         c, t = entry.corner, int(entry.stamp_ns)
         where = f"wavefront of {c} at stamp {format_stamp(t)}"
         if c not in CORNERS:
@@ -368,10 +409,15 @@ class VisitAssembler:
         if closed is not None:
             return None, Rejection("late", f"{where}: arrived after the visit was published "
                                    f"({closed})", c, "", t)
+        notice = None
         oldest = self._closed.oldest()
         if oldest is not None and t < oldest - self.tolerance_ns:
-            return None, Rejection("late", f"{where}: older than every visit still tracked",
-                                   c, "", t)
+            behind = self._closed.clock_jump(t, self.tolerance_ns, self.clock_reset_ns)
+            if behind is None:
+                return None, Rejection("late", f"{where}: older than every visit still "
+                                       "tracked", c, "", t)
+            self._closed.clear()
+            notice = _clock_jump_notice(where, behind, c, "", t)
         visit = self._find(t)
         if visit is None:
             visit = _Visit(t, now)
@@ -381,8 +427,8 @@ class VisitAssembler:
                                    "the visit", c, "", t)
         visit.entries[c] = entry
         if len(visit.entries) == len(CORNERS):
-            return self._emit(visit, complete=True), None
-        return None, None
+            return self._emit(visit, complete=True), notice
+        return None, notice
 
     def expire(self, now: float) -> list[VisitVector]:
         """Emit every visit older than the timeout, missing corners marked invalid."""

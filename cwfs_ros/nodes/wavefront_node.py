@@ -416,8 +416,7 @@ class WavefrontNode(Node):
         if pair.error is not None:
             tag = (pair.intra.error or pair.extra.error or "bad_image").split(":", 1)[0]
             self._publish_outcome(invalid_outcome(c, pair.stamp_ns, tag, pair.error, fi, fe,
-                                                  settings.solver), frame=pair.intra.frame_id,
-                                  count=False)
+                                                  settings.solver), count=False)
             return
         if self._is_frame_pair(pair.intra.image, pair.extra.image):
             from cwfs_ros.core.selection import CornerFrameJob
@@ -432,7 +431,7 @@ class WavefrontNode(Node):
             job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
                             settings, oi, oe)
             fut = self.pool.submit(job)
-        fut.add_done_callback(lambda f, frame=pair.intra.frame_id: self._on_future(f, frame))
+        fut.add_done_callback(self._on_future)
 
     def _is_frame_pair(self, intra: np.ndarray, extra: np.ndarray) -> bool:
         """Frames (several stars, detection needed) or stamps (one donut each)?"""
@@ -442,9 +441,9 @@ class WavefrontNode(Node):
         side = int(self._param("frame_min_side_px"))
         return max(*np.shape(intra), *np.shape(extra)) >= side
 
-    def _on_future(self, f: Future, frame: str) -> None:
+    def _on_future(self, f: Future) -> None:
         try:
-            self._publish_outcome(f.result(), frame=frame)
+            self._publish_outcome(f.result())
         except Exception as exc:  # noqa: BLE001
             self._publish_failed(exc)
 
@@ -455,9 +454,15 @@ class WavefrontNode(Node):
         self._reject(Rejection("publish_failed", f"a corner result could not be published: "
                                f"{type(exc).__name__}: {exc}"))
 
-    def _publish_outcome(self, out: CornerOutcome, frame: str = "", count: bool = True) -> None:
-        """Publish a corner's result (and assemble it). ``count``: count an invalid one as a
-        rejection (False when its cause was already counted, e.g. a decoding error)."""
+    def _publish_outcome(self, out: CornerOutcome, count: bool = True,
+                         assemble: bool = True) -> None:
+        """Publish a corner's result (and assemble it, unless ``assemble`` is False: its visit
+        was already published). ``count``: count an invalid one as a rejection (False when
+        its cause was already counted, e.g. a decoding error).
+
+        The message's frame_id is the ``frame_id`` parameter, never the images' own: the
+        Zernikes are in the focal-plane frame whatever frame the camera names its images in.
+        """
         c = out.corner
         with self._lock:
             self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
@@ -468,9 +473,9 @@ class WavefrontNode(Node):
                                    out.stamp_ns), warn=True)
         fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
         msg = corner_wavefront_msg(out, field_intra_deg=fi, field_extra_deg=fe,
-                                   frame_id=frame or self.frame_id)
+                                   frame_id=self.frame_id)
         self.pub_corner[c].publish(msg)
-        if self.assembler is not None:
+        if self.assembler is not None and assemble:
             self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status))
 
     # ------------------------------------------------------------------ assembly
@@ -526,6 +531,16 @@ class WavefrontNode(Node):
                     closures += self.pairing.close(c, vec.stamp_ns, "visit published without it")
         for r in closures:
             self._reject(r, warn=True)
+            # The corner's topic says what became of its half visit, as when the pairing
+            # timeout drops it (_expire_now); the vector already holds it as missing.
+            f = self.fields[r.corner]
+            try:
+                self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason,
+                                                      r.message, f["intra"], f["extra"],
+                                                      self.settings.solver),
+                                      count=False, assemble=False)
+            except Exception as exc:  # noqa: BLE001
+                self._publish_failed(exc)
         if not vec.complete:
             with self._lock:
                 self.last_incomplete = (time.monotonic(), f"visit {vec.stamp_ns}: {vec.status}")
