@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 import pytest
-from hypothesis import settings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,8 +27,10 @@ os.environ.setdefault(
 # CI (`.ci/run` sets CWFS_CI=1) replays the same hypothesis examples every run and keeps no
 # example database: a landing is decided by the code, not by which random inputs came up.
 # Local runs keep exploring new examples.
-settings.register_profile("ci", derandomize=True, database=None)
 if os.environ.get("CWFS_CI") == "1":
+    from hypothesis import settings
+
+    settings.register_profile("ci", derandomize=True, database=None)
     settings.load_profile("ci")
 
 _N_DOMAINS = 102  # ROS-recommended ids 0..101 stay clear of the ephemeral port range

@@ -508,6 +508,9 @@ def test_visit_order_rules(sm):
     np.testing.assert_array_equal(s.state()[0], state[0])
     np.testing.assert_array_equal(s.state()[1], state[1])
     assert s.n_steps == 1 and s.last_stamp_ns == now - 10
+    # A clock gone back by a day is refused too (an operator decides), naming the way out.
+    res = s.step(y, stamp_ns=now - 86_400 * 10**9, now_ns=now)
+    assert not res.valid and "~/reset" in res.status and "86400 s back" in res.status
     assert s.step(y, stamp_ns=now + 59 * 10**9, now_ns=now).valid  # within max_future_s
     assert s.step(y, stamp_ns=now + 61 * 10**9).valid  # no clock given: no future test
     s.reset()

@@ -489,6 +489,9 @@ def test_a_half_visit_closed_by_the_visit_timeout_is_published_on_its_corner(ros
     try:
         corners, vectors = _capture(wf.pub_corner["R00"]), _capture(wf.pub_vector)
         wait_for(lambda: wf.ready, 60, "warm-up")
+        # Only the visit timeout may drop the waiting image here, not its own pairing
+        # timeout (the same 1 s by default, half a second later), whatever the machine's pace.
+        wf.pairing.timeout_s = 60.0
         remote = CornerWavefront(corner="R04", valid=True, status="ok")
         remote.header.stamp.sec, remote.header.stamp.nanosec = divmod(T, SEC)
         remote.noll, remote.zernikes_nm = list(range(4, 23)), [1.0] * 19

@@ -9,7 +9,7 @@
 #   BOOTSTRAP_FORCE=1 tools/bootstrap.sh   # ignore stamps, redo every step
 set -euo pipefail
 
-REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd -P)"  # symlinks resolved: one name
 cd "$REPO"
 
 VENV="$REPO/.venv"
@@ -52,9 +52,14 @@ check_version() {  # check_version "3.11" -> fails unless 3.11 <= v <= 3.13
 # A venv holds its own absolute path (script headers, the editable install, the share/
 # links below): one made for another checkout (a copied or moved tree) would run that
 # checkout's code, so it is made again.
-if [ -x "$VPY" ] && [ -f "$VENV/pyvenv.cfg" ] && [ -f "$STAMPS/repo" ] \
-   && [ "$(cat "$STAMPS/repo")" != "$REPO" ]; then
-  say "the venv was made for $(cat "$STAMPS/repo"), not $REPO: making it again"
+made_for=""
+if [ -f "$STAMPS/repo" ]; then
+  made_for="$(cat "$STAMPS/repo")"
+elif [ -f "$VENV/bin/activate" ] && ! grep -qF "$VENV" "$VENV/bin/activate"; then
+  made_for="another directory (its bin/activate names no $VENV)"  # a venv older than the stamp
+fi
+if [ -x "$VPY" ] && [ -f "$VENV/pyvenv.cfg" ] && [ -n "$made_for" ] && [ "$made_for" != "$REPO" ]; then
+  say "the venv was made for $made_for, not $REPO: making it again"
   rm -rf "$VENV"
 fi
 if [ -x "$VPY" ] && [ -f "$VENV/pyvenv.cfg" ]; then

@@ -1006,8 +1006,15 @@ class OFCSolver:
             return "no_stamp: the visit's header.stamp is unset (0)"
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
             what = "again" if stamp_ns == self.last_stamp_ns else "older than the last one"
+            hint = ""
+            if self.last_stamp_ns - stamp_ns > _CLOCK_RESET_HINT_NS:
+                # Deliberately not followed automatically (wavefront_node does restart its
+                # visit history): a correction must not come from visits whose time went
+                # backwards, an old bag played into the graph say, without an operator.
+                hint = (f"; {(self.last_stamp_ns - stamp_ns) / 1e9:.0f} s back: if the "
+                        "camera's clock was reset, reset the controller (ofc_node ~/reset)")
             return (f"stale_visit: visit {stamp_ns} ns is {what} applied "
-                    f"({self.last_stamp_ns} ns): not applied twice or out of order")
+                    f"({self.last_stamp_ns} ns): not applied twice or out of order{hint}")
         if self.max_future_s is not None and now_ns is not None and now_ns > 0 and \
                 stamp_ns > now_ns + self.max_future_s * 1e9:
             return (f"future_stamp: visit {stamp_ns} ns is {(stamp_ns - now_ns) / 1e9:.4g} s "
@@ -1125,6 +1132,10 @@ def sensitivity_for_source(source: str) -> SensitivityMatrix:
         return SensitivityMatrix.from_ts_ofc(fields_deg=corner_mid_field_points_deg())
     raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
 
+
+# A visit this far older than the last one applied names the reset service in its refusal
+# (the same 600 s as cwfs_ros.core.visits.CLOCK_RESET_S, kept import-free of it).
+_CLOCK_RESET_HINT_NS = 600 * 1_000_000_000
 
 # Ranges of ofc_node's numeric parameters, in one place: the node declares them in its
 # ParameterDescriptors and solver_from_params checks them, so that the offline replay of a bag

@@ -347,7 +347,8 @@ class WavefrontNode(Node):
             info = f.result()
         except BaseException as exc:  # noqa: BLE001
             info = {"corner": corner, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
-        if not info.get("ok") and attempt < _WARM_ATTEMPTS:
+        cancelled = f.cancelled()  # the pool is shutting down: nothing to retry
+        if not info.get("ok") and attempt < _WARM_ATTEMPTS and not cancelled:
             # A worker that died during its warm-up (killed, out of memory) is restarted by
             # the next job it is given: warm it again rather than report ERROR for good.
             with self._lock:
