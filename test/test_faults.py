@@ -89,11 +89,14 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
     dofs: list[DofCorrection] = []
     ready_at: list[float] = []
 
+    images_seen: list[int] = []  # the wavefront node's own count of images received
+
     def on_diag(arr: DiagnosticArray) -> None:
         for st in arr.status:
             if st.name.startswith("wavefront_node") and any(
                     kv.key == "state" and kv.value == "ready" for kv in st.values):
                 ready_at.append(time.monotonic())
+                images_seen.extend(int(kv.value) for kv in st.values if kv.key == "images")
 
     tester.create_subscription(WavefrontVector, "aos/wfs/wavefront", vectors.append,
                                OUTPUT_QOS)
@@ -119,9 +122,11 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
         wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20,
                  "discovery")
         publish(stamp_a, keys[:5])            # R00, R04 complete; R40 intra only
-        time.sleep(0.3)                       # the node holds half a visit
+        wait_for(lambda: bool(images_seen) and images_seen[-1] >= 5, 10,
+                 "the node to hold half a visit (its diagnostics count the 5 images)")
         _kill(proc)
         n_ready = len(ready_at)
+        images_seen.clear()
         t_kill = time.monotonic()
         proc = _start_node(ros_domain)
         wait_for(lambda: len(ready_at) > n_ready and ready_at[-1] > t_kill + 0.5, 90,
