@@ -510,3 +510,30 @@ def test_a_half_visit_closed_by_the_visit_timeout_is_published_on_its_corner(ros
         assert dict(wf.rejected.counts) == {"unpaired": 1}
     finally:
         wf.destroy_node()
+
+
+def test_a_worker_killed_while_warming_up_is_restarted_and_warmed(ros_context):
+    """The real fault: the worker process SIGKILLed in the middle of its warm-up. The warm-up
+    fails with BrokenProcessPool, the retry restarts the worker, and the node gets ready."""
+    import os
+    import signal
+
+    wf = WavefrontNode(context=ros_context, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1)])
+    try:
+        pids: list[int] = []
+
+        def worker_started() -> bool:
+            ex = wf.pool._slots[0]
+            procs = getattr(ex, "_processes", None) or {}
+            pids.extend(procs)
+            return bool(pids)
+
+        wait_for(worker_started, 30, "the worker process")
+        assert not wf.ready  # the warm-up (seconds) is still running
+        os.kill(pids[0], signal.SIGKILL)
+        wait_for(lambda: wf.ready, 90, "the warm-up, retried on a restarted worker")
+        assert wf.pool.restarts == 1
+        assert "error" not in wf.diagnostics().message
+    finally:
+        wf.destroy_node()
