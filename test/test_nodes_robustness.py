@@ -276,6 +276,24 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     assert d9.predicted_residual_rms_nm < d9.wavefront_rms_nm
 
 
+def _corner_msg(c: str, stamp: int, z, valid: bool = True) -> CornerWavefront:
+    """A CornerWavefront of corner ``c`` at ``stamp`` (ns) holding Z4..Z22 = ``z``."""
+    m = CornerWavefront(corner=c, valid=valid, status="ok" if valid else "x: remote bad")
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+    m.noll = list(range(4, 23))
+    m.zernikes_nm = [float(v) for v in z]
+    return m
+
+
+def _expire_until_published(wf: WavefrontNode, vectors: list) -> None:
+    """Run the node's visit-timeout pass (its 0.1 s timer, called directly) until a vector
+    is published, for at most 10 s."""
+    deadline = time.monotonic() + 10
+    while not vectors and time.monotonic() < deadline:
+        wf._expire()
+        time.sleep(0.05)
+
+
 def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, spin):
     """One instance serves R00; R04, R40, R44 come as CornerWavefront from 'elsewhere'."""
     wf = spin(WavefrontNode(context=ros_context, parameter_overrides=[
@@ -293,25 +311,18 @@ def test_vector_assembled_from_local_and_remote_corner_wavefronts(ros_context, s
                                                               *remote.values()]), 10,
              "discovery")
 
-    def corner_msg(c, stamp, z, valid=True):
-        m = CornerWavefront(corner=c, valid=valid, status="ok" if valid else "x: remote bad")
-        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
-        m.noll = list(range(4, 23))
-        m.zernikes_nm = [float(v) for v in z]
-        return m
-
     donut = synthetic_donut(160, 60.0, 0.61)
     # A producer on R04's topic that claims R44 (a wrong remapping), and one claiming R00,
     # the corner this node serves: neither may fill that slot.
-    remote["R04"].publish(corner_msg("R44", T, np.full(19, 7777.0)))
-    remote["R04"].publish(corner_msg("R00", T, np.full(19, 8888.0)))
+    remote["R04"].publish(_corner_msg("R44", T, np.full(19, 7777.0)))
+    remote["R04"].publish(_corner_msg("R00", T, np.full(19, 8888.0)))
     wait_for(lambda: wf.rejected.counts["corner_mismatch"] == 2, 10, "both mismatches")
     for k, stamp in enumerate((T, T + SEC)):
         for c, pub in remote.items():
             z = np.arange(19.0) + 100 * ("R00", "R04", "R40", "R44").index(c)
             if k == 1 and c == "R40":
                 z[3] = np.nan  # flagged valid but unusable
-            pub.publish(corner_msg(c, stamp, z))
+            pub.publish(_corner_msg(c, stamp, z))
         for pub in img.values():
             pub.publish(image_msg(donut, stamp))
     wait_for(lambda: of(vectors, T + SEC), 20, "both vectors")
@@ -403,10 +414,7 @@ def test_incomplete_visits_and_unusable_stamps_are_reported(ros_context):
         assert corners[0].valid, corners[0].status
         # The Zernikes are in the focal-plane frame, not the camera's: the node's frame_id.
         assert corners[0].header.frame_id == wf.frame_id == "focal_plane"
-        deadline = time.monotonic() + 10
-        while not vectors and time.monotonic() < deadline:
-            wf._expire()
-            time.sleep(0.05)
+        _expire_until_published(wf, vectors)
         (v,) = vectors
         assert list(v.corner_valid) == [True, False, False, False]
         assert not wf.rejected.counts  # nothing was rejected: the others just never came
@@ -416,9 +424,8 @@ def test_incomplete_visits_and_unusable_stamps_are_reported(ros_context):
         bad = image_msg(donut, T + SEC)
         bad.header.stamp.sec, bad.header.stamp.nanosec = 2**31 - 1, 2**32 - 1
         wf._image_callback("R00", "intra")(bad)
-        remote = CornerWavefront(corner="R04", valid=True, status="ok")
+        remote = _corner_msg("R04", 0, np.ones(19))
         remote.header.stamp.nanosec = 1_000_000_000
-        remote.noll, remote.zernikes_nm = list(range(4, 23)), [1.0] * 19
         wf._remote_corner_callback("R04")(remote)
         assert wf.rejected.counts["bad_stamp"] == 2, dict(wf.rejected.counts)
         assert "nanosec" in wf.rejected.last_message
@@ -492,16 +499,10 @@ def test_a_half_visit_closed_by_the_visit_timeout_is_published_on_its_corner(ros
         # Only the visit timeout may drop the waiting image here, not its own pairing
         # timeout (the same 1 s by default, half a second later), whatever the machine's pace.
         wf.pairing.timeout_s = 60.0
-        remote = CornerWavefront(corner="R04", valid=True, status="ok")
-        remote.header.stamp.sec, remote.header.stamp.nanosec = divmod(T, SEC)
-        remote.noll, remote.zernikes_nm = list(range(4, 23)), [1.0] * 19
-        wf._remote_corner_callback("R04")(remote)
+        wf._remote_corner_callback("R04")(_corner_msg("R04", T, np.ones(19)))
         time.sleep(0.5)
         wf._image_callback("R00", "intra")(image_msg(synthetic_donut(160, 60.0, 0.61), T))
-        deadline = time.monotonic() + 10
-        while not vectors and time.monotonic() < deadline:
-            wf._expire()
-            time.sleep(0.05)
+        _expire_until_published(wf, vectors)
         (v,) = vectors
         assert list(v.corner_valid) == [False, True, False, False]
         (m,) = corners

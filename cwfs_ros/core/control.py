@@ -91,6 +91,7 @@ import numpy as np
 import yaml
 
 from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.core.visits import CLOCK_RESET_S
 from cwfs_ros.paths import config_dir
 
 __all__ = [
@@ -1007,7 +1008,7 @@ class OFCSolver:
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
             what = "again" if stamp_ns == self.last_stamp_ns else "older than the last one"
             hint = ""
-            if self.last_stamp_ns - stamp_ns > _CLOCK_RESET_HINT_NS:
+            if self.last_stamp_ns - stamp_ns > CLOCK_RESET_S * 1e9:
                 # Deliberately not followed automatically (wavefront_node does restart its
                 # visit history): a correction must not come from visits whose time went
                 # backwards, an old bag played into the graph say, without an operator.
@@ -1132,10 +1133,6 @@ def sensitivity_for_source(source: str) -> SensitivityMatrix:
         return SensitivityMatrix.from_ts_ofc(fields_deg=corner_mid_field_points_deg())
     raise ConfigError(f"matrix_source must be one of {MATRIX_SOURCES}, got {source!r}")
 
-
-# A visit this far older than the last one applied names the reset service in its refusal
-# (the same 600 s as cwfs_ros.core.visits.CLOCK_RESET_S, kept import-free of it).
-_CLOCK_RESET_HINT_NS = 600 * 1_000_000_000
 
 # Ranges of ofc_node's numeric parameters, in one place: the node declares them in its
 # ParameterDescriptors and solver_from_params checks them, so that the offline replay of a bag

@@ -175,35 +175,29 @@ class _Closed:
             return None
         return min(self._items)
 
-    def newest(self) -> int | None:
-        return max(self._items) if self._items else None
-
-    def clear(self) -> None:
-        self._items.clear()
-
-    def clock_jump(self, t: int, tol: int, reset_ns: int) -> int | None:
-        """How far (ns) stamp ``t`` lies behind the newest visit, when it is older than every
-        visit remembered (a late image would be refused for good) and by more than
-        ``reset_ns``: then the source's clock went back (a restarted camera or simulator, a
-        corrected clock), and refusing it as late would refuse every later visit too, until
-        its stamps caught up with the old ones.  None otherwise."""
+    def age_check(self, t: int, tol: int, reset_ns: int, where: str, corner: str,
+                  side: str) -> Rejection | None:
+        """None for a stamp within the visits remembered. For one older than all of them: a
+        ``late`` rejection, or, when it is also more than ``reset_ns`` behind the newest, a
+        ``clock_jump`` notice, the history cleared and the stamp to be taken: the source's
+        clock went back (a restarted camera or simulator, a corrected clock), and refusing
+        it as late would refuse every later visit too, until its stamps caught up."""
         oldest = self.oldest()
         if oldest is None or t >= oldest - tol:
             return None
         behind = max(self._items) - t
-        return behind if behind > reset_ns else None
+        if behind <= reset_ns:
+            return Rejection("late", f"{where}: older than every visit still tracked",
+                             corner, side, t)
+        self._items.clear()
+        return Rejection("clock_jump", f"{where}: {behind / 1e9:.0f} s before the newest "
+                         "visit: the source's clock went back; the visit history is cleared "
+                         "and its images are taken again", corner, side, t)
 
 
 # A stamp this far behind the newest visit, and older than every visit remembered, is a clock
 # that went back, not a late image (visits come every ~30-40 s; no image is 10 minutes late).
 CLOCK_RESET_S = 600.0
-
-
-def _clock_jump_notice(where: str, behind_ns: int, corner: str, side: str,
-                       t: int) -> Rejection:
-    return Rejection("clock_jump", f"{where}: {behind_ns / 1e9:.0f} s before the newest visit: "
-                     "the source's clock went back; the visit history is cleared and its "
-                     "images are taken again", corner, side, t)
 
 
 class PairingBuffer:
@@ -251,15 +245,9 @@ class PairingBuffer:
         if closed is not None:
             return None, Rejection("late", f"{where}: arrived after that visit was closed "
                                    f"({closed})", c, side, t)
-        notice = None
-        oldest = self._closed[c].oldest()
-        if oldest is not None and t < oldest - tol:
-            behind = self._closed[c].clock_jump(t, tol, self.clock_reset_ns)
-            if behind is None:
-                return None, Rejection("late", f"{where}: older than every visit still "
-                                       "tracked", c, side, t)
-            self._closed[c].clear()
-            notice = _clock_jump_notice(where, behind, c, side, t)
+        notice = self._closed[c].age_check(t, tol, self.clock_reset_ns, where, c, side)
+        if notice is not None and notice.reason == "late":
+            return None, notice
         same = self._pending[c][side]
         if any(abs(r.stamp_ns - t) <= tol for r in same):
             return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
@@ -409,15 +397,10 @@ class VisitAssembler:
         if closed is not None:
             return None, Rejection("late", f"{where}: arrived after the visit was published "
                                    f"({closed})", c, "", t)
-        notice = None
-        oldest = self._closed.oldest()
-        if oldest is not None and t < oldest - self.tolerance_ns:
-            behind = self._closed.clock_jump(t, self.tolerance_ns, self.clock_reset_ns)
-            if behind is None:
-                return None, Rejection("late", f"{where}: older than every visit still "
-                                       "tracked", c, "", t)
-            self._closed.clear()
-            notice = _clock_jump_notice(where, behind, c, "", t)
+        notice = self._closed.age_check(t, self.tolerance_ns, self.clock_reset_ns, where, c,
+                                        "")
+        if notice is not None and notice.reason == "late":
+            return None, notice
         visit = self._find(t)
         if visit is None:
             visit = _Visit(t, now)

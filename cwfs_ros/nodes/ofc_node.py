@@ -189,10 +189,8 @@ class OfcNode(Node):
             # published would leave the state ahead of the telescope).
             with self._lock:
                 self.stats["vectors"] += 1
-                self.stats["corrections_refused"] += 1
-                self.last_status = bad
-            self.refused.add("bad_stamp", bad)
-            self.get_logger().warning(f"visit refused: {bad}")
+            self._account(f"{msg.header.stamp.sec}.{msg.header.stamp.nanosec}",
+                          self._refusal(bad))
             return
         stamp = stamp_to_ns(msg.header.stamp)
         try:
@@ -217,6 +215,15 @@ class OfcNode(Node):
                            float("nan"), 0)
 
     def _publish(self, stamp: int, out: C.OFCResult, dry: bool) -> None:
+        self._account(str(stamp), out)
+        self.pub.publish(dof_correction_msg(
+            stamp_ns=stamp, frame_id=self.frame_id, dof=out.dof, dof_total=out.dof_total,
+            valid=out.valid, status=out.status, wavefront_rms_nm=out.wavefront_rms_nm,
+            predicted_residual_rms_nm=out.predicted_residual_rms_nm, dry_run=dry,
+            n_modes_used=out.n_modes_used))
+
+    def _account(self, visit: str, out: C.OFCResult) -> None:
+        """Count a visit's result for /diagnostics, and log a refusal with its reason."""
         with self._lock:
             if out.valid:
                 self.stats["corrections_valid"] += 1
@@ -227,12 +234,7 @@ class OfcNode(Node):
         if not out.valid:
             tag = out.status.split(":", 1)[0]
             self.refused.add(tag, out.status)
-            self.get_logger().warning(f"visit {stamp}: correction refused: {out.status}")
-        self.pub.publish(dof_correction_msg(
-            stamp_ns=stamp, frame_id=self.frame_id, dof=out.dof, dof_total=out.dof_total,
-            valid=out.valid, status=out.status, wavefront_rms_nm=out.wavefront_rms_nm,
-            predicted_residual_rms_nm=out.predicted_residual_rms_nm, dry_run=dry,
-            n_modes_used=out.n_modes_used))
+            self.get_logger().warning(f"visit {visit}: correction refused: {out.status}")
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
         with self._lock:

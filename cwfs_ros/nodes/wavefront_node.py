@@ -448,6 +448,19 @@ class WavefrontNode(Node):
         except Exception as exc:  # noqa: BLE001
             self._publish_failed(exc)
 
+    def _publish_unpaired(self, r: Rejection, assemble: bool = True) -> None:
+        """Report a half visit dropped unpaired (the pairing timeout, or its visit published
+        without it), and say so on the corner's topic. A failure to publish is reported, not
+        raised, so that it does not stop the others of the same pass."""
+        self._reject(r, warn=True)
+        f = self.fields[r.corner]
+        try:
+            self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
+                                                  f["intra"], f["extra"], self.settings.solver),
+                                  count=False, assemble=assemble)
+        except Exception as exc:  # noqa: BLE001
+            self._publish_failed(exc)
+
     def _publish_failed(self, exc: BaseException) -> None:
         """A corner result that could not be published: counted and reported like any
         rejection (the log alone would leave /diagnostics saying all is well)."""
@@ -531,17 +544,8 @@ class WavefrontNode(Node):
                 if c in self.corners and st.startswith("missing"):
                     closures += self.pairing.close(c, vec.stamp_ns, "visit published without it")
         for r in closures:
-            self._reject(r, warn=True)
-            # The corner's topic says what became of its half visit, as when the pairing
-            # timeout drops it (_expire_now); the vector already holds it as missing.
-            f = self.fields[r.corner]
-            try:
-                self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason,
-                                                      r.message, f["intra"], f["extra"],
-                                                      self.settings.solver),
-                                      count=False, assemble=False)
-            except Exception as exc:  # noqa: BLE001
-                self._publish_failed(exc)
+            # The vector already holds the corner as missing: not assembled again.
+            self._publish_unpaired(r, assemble=False)
         if not vec.complete:
             with self._lock:
                 self.last_incomplete = (time.monotonic(), f"visit {vec.stamp_ns}: {vec.status}")
@@ -560,14 +564,7 @@ class WavefrontNode(Node):
         with self._lock:
             unpaired = self.pairing.expire(now)
         for r in unpaired:
-            self._reject(r, warn=True)
-            f = self.fields[r.corner]
-            try:  # one failure must not stop the others from being reported
-                self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason,
-                                                      r.message, f["intra"], f["extra"],
-                                                      self.settings.solver), count=False)
-            except Exception as exc:  # noqa: BLE001
-                self._publish_failed(exc)
+            self._publish_unpaired(r)
         if self.assembler is not None:
             with self._lock:
                 due = self.assembler.expire(now)
