@@ -98,6 +98,7 @@ __all__ = [
     "BANDS",
     "BUNDLED_MATRIX_FILENAME",
     "CORNER_NAMES",
+    "CheckedVisit",
     "CORNER_SENSORS",
     "DOF_CONVENTIONS",
     "MATRIX_SOURCES",
@@ -114,6 +115,7 @@ __all__ = [
     "OFCSolver",
     "ObservabilityReport",
     "OpticsConfig",
+    "Refusal",
     "SensitivityMatrix",
     "band_wavelength_um",
     "convert_dof_convention",
@@ -667,6 +669,23 @@ def _resolve_limit(
 # results
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
+class CheckedVisit:
+    """A visit's measurement that passed :meth:`OFCSolver.check_visit`."""
+
+    y: np.ndarray  # (19 * n_fields,) total measured wavefront, nm
+    corner_valid: np.ndarray  # (n_fields,) bools
+    rows: np.ndarray  # (19 * n_fields,) bools: the rows of the corners used
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a visit is refused: ``"<tag>: <explanation>"`` and the corner flags seen."""
+
+    status: str
+    corners: tuple[bool, ...] = ()
+
+
+@dataclass(frozen=True)
 class Estimate:
     """Gain-1 estimate of the optical-state error from one visit (no controller state).
 
@@ -716,6 +735,13 @@ class OFCResult:
     condition : effective condition number of the inverse.
     corners_used : per-corner flags of the rows used.
     elapsed_s : wall time of the step.
+    dof_uncertainty : (50,) 1-sigma of the estimated state after this visit (Kalman
+        controller; zeros from the PI controller, which does not estimate it).
+    field_rms_nm, predicted_field_rms_nm : estimated wavefront error averaged over the science
+        field (Gaussian-quadrature points, design removed) before and after ``dof`` [nm];
+        NaN from the PI controller.
+    rotator_angle_deg : camera rotator angle the visit was solved at.
+    dropped, n_dropped : the state directions too weakly observed to be corrected.
     """
 
     dof: np.ndarray
@@ -730,6 +756,12 @@ class OFCResult:
     condition: float = float("nan")
     corners_used: tuple[bool, ...] = ()
     elapsed_s: float = 0.0
+    dof_uncertainty: np.ndarray = field(default_factory=lambda: np.zeros(N_DOF))
+    field_rms_nm: float = float("nan")
+    predicted_field_rms_nm: float = float("nan")
+    rotator_angle_deg: float = 0.0
+    dropped: str = ""
+    n_dropped: int = 0
 
 
 def _rms(r: np.ndarray, n_corners: int) -> float:
@@ -906,26 +938,24 @@ class OFCSolver:
         return inv
 
     # ---------------------------------------------------------------- estimate
-    def estimate(
+    def check_visit(
         self,
         measured_nm: np.ndarray | Sequence[float],
         corner_valid: np.ndarray | Sequence[bool] | None = None,
-    ) -> Estimate:
-        """Gain-1 state-error estimate ``e = A⁺ (y - y_intrinsic)`` (leaves the state alone).
+        intrinsic_nm: np.ndarray | None = None,
+    ) -> CheckedVisit | Refusal:
+        """The input checks every controller applies before it solves anything.
 
-        Parameters
-        ----------
-        measured_nm : (19 * n_fields,) or (n_fields, 19) total measured wavefront, nm.
-        corner_valid : (n_fields,) bools; default all True.
+        Shape, corner validity (``allow_partial``), finiteness, ``max_abs_zernike_nm`` and
+        unfilled corners, against ``intrinsic_nm`` (default this solver's). Returns the
+        flattened measurement with its corner and row masks, or the refusal.
         """
         nf = self.n_fields
         n_rows = nf * N_ZK
-        nan_vec = np.full(n_rows, np.nan)
+        intrinsic = self.intrinsic_nm if intrinsic_nm is None else intrinsic_nm
 
-        def refuse(status: str, r: np.ndarray = nan_vec, rms: float = float("nan"),
-                   corners: tuple[bool, ...] = ()) -> Estimate:
-            return Estimate(np.zeros(N_DOF), False, status, r, rms, float("nan"), 0,
-                            float("nan"), corners)
+        def refuse(status: str, corners: tuple[bool, ...] = ()) -> Refusal:
+            return Refusal(status, corners)
 
         try:
             y = np.asarray(measured_nm, dtype=np.float64)
@@ -950,30 +980,57 @@ class OFCSolver:
             return refuse(f"corner_invalid: {bad} flagged invalid and allow_partial is False",
                           corners=corners)
         if not cv.any():
-            return refuse("no_valid_corners: every corner is flagged invalid", corners=corners)
+            return refuse("no_valid_corners: every corner is flagged invalid", corners)
         rows = self.sensitivity.rows_for(cv)
         bad_rows = rows & ~np.isfinite(y)
         if bad_rows.any():
             bad_c = sorted({names[i // N_ZK] for i in np.flatnonzero(bad_rows)})
             return refuse(f"non_finite: NaN/inf in the wavefront of {', '.join(bad_c)} "
-                          f"({int(bad_rows.sum())} values)", corners=corners)
+                          f"({int(bad_rows.sum())} values)", corners)
         if self.max_abs_zernike_nm is not None:
             big = rows & (np.abs(y) > self.max_abs_zernike_nm)
             if big.any():
                 big_c = sorted({names[i // N_ZK] for i in np.flatnonzero(big)})
                 return refuse(f"implausible_wavefront: |Z| up to {np.abs(y[big]).max():.4g} nm "
                               f"in {', '.join(big_c)}, beyond max_abs_zernike_nm "
-                              f"{self.max_abs_zernike_nm:g}", corners=corners)
+                              f"{self.max_abs_zernike_nm:g}", corners)
         # A measured total wavefront holds the design's (tens to hundreds of nm at the
         # corners): a valid-flagged corner of exact zeros is an unfilled field, not a
         # measurement, and solving it would correct a perfect telescope by minus its design.
         blank = [names[k] for k in range(self.n_fields)
                  if cv[k] and not np.any(y[k * N_ZK:(k + 1) * N_ZK])
-                 and np.any(self.intrinsic_nm[k * N_ZK:(k + 1) * N_ZK])]
+                 and np.any(intrinsic[k * N_ZK:(k + 1) * N_ZK])]
         if blank:
             return refuse(f"implausible_wavefront: {', '.join(blank)} flagged valid but all "
                           f"{N_ZK} terms are exactly 0 (an unfilled corner: a measurement "
-                          "holds the design wavefront)", corners=corners)
+                          "holds the design wavefront)", corners)
+        return CheckedVisit(y, cv, rows)
+
+    def estimate(
+        self,
+        measured_nm: np.ndarray | Sequence[float],
+        corner_valid: np.ndarray | Sequence[bool] | None = None,
+    ) -> Estimate:
+        """Gain-1 state-error estimate ``e = A⁺ (y - y_intrinsic)`` (leaves the state alone).
+
+        Parameters
+        ----------
+        measured_nm : (19 * n_fields,) or (n_fields, 19) total measured wavefront, nm.
+        corner_valid : (n_fields,) bools; default all True.
+        """
+        nf = self.n_fields
+        nan_vec = np.full(nf * N_ZK, np.nan)
+        checked = self.check_visit(measured_nm, corner_valid)
+        if isinstance(checked, Refusal):
+            return Estimate(np.zeros(N_DOF), False, checked.status, nan_vec, float("nan"),
+                            float("nan"), 0, float("nan"), checked.corners)
+        y, cv, rows = checked.y, checked.corner_valid, checked.rows
+        corners = tuple(bool(c) for c in cv)
+
+        def refuse(status: str, r: np.ndarray, rms: float) -> Estimate:
+            return Estimate(np.zeros(N_DOF), False, status, r, rms, float("nan"), 0,
+                            float("nan"), corners)
+
         r_full = np.where(rows, y - self.intrinsic_nm, np.nan)
         r = r_full[rows]
         n_used = int(cv.sum())
@@ -982,7 +1039,7 @@ class OFCSolver:
         if inv.n_modes == 0 or not inv.condition <= self.max_condition:
             return refuse(f"ill_conditioned: effective condition number {inv.condition:.3g} "
                           f"> max_condition {self.max_condition:.3g} "
-                          f"({self.method}, {n_used} corners)", r_full, rms, corners)
+                          f"({self.method}, {n_used} corners)", r_full, rms)
         # Overflow (values near the float64 maximum, with no plausibility limit set) gives
         # NaN/inf here, which step() refuses as non_finite_result: no warning needed.
         with np.errstate(over="ignore", invalid="ignore"):

@@ -4,13 +4,23 @@ Topics and services (relative names; in the root namespace they are the ones bel
 ----------------------------------------------------------------------------------
 in   ``/aos/wfs/wavefront``     cwfs_msgs/WavefrontVector (total wavefront, intrinsic included)
 out  ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection, one per vector, same header.stamp
+in   ``/joint_states``          sensor_msgs/JointState: joint ``camera_rotator``, position [rad]
+                                (``rotator_angle_source: topic``)
 out  ``/diagnostics``           state, refusal counts and the last reason
-srv  ``~/reset``                std_srvs/Trigger: forget the accumulated DoF state and integral
+srv  ``~/reset``                std_srvs/Trigger: forget the accumulated state (and its file)
 
-Per visit (all in :class:`cwfs_ros.core.control.OFCSolver`): subtract the band's intrinsic
-design wavefront at the corner fields, estimate the DoF error with a truncated-SVD or Tikhonov
-pseudo-inverse in normalised DoF units, apply the P/PI law, limit the step per visit and clip
-the accumulated state to the DoF ranges. The DoF convention is batoid_rubin's (OCS), the one of
+Per visit, ``controller: kalman`` (default, :class:`cwfs_ros.ofc.kalman.KalmanOFC`): rotate the
+camera-frame Zernikes into the telescope frame at the visit's rotator angle, subtract the
+design, update a Kalman filter of the DoF state weighted by the corners' reported
+uncertainties (directions the corners barely see are dropped and reported), and apply the
+correction that minimises the predicted wavefront error over the whole science field within
+the step limits and strokes. ``controller: pid`` is ts_ofc's scheme
+(:class:`cwfs_ros.core.control.OFCSolver`: range-fwhm weights, truncated SVD, PI gains), kept
+for comparison; it has no rotator model and refuses a rotated camera. With ``state_file`` the
+state is written atomically after every applied visit and read back at start, so a
+restarted node continues and refuses visits it already applied.
+
+The DoF convention is batoid_rubin's (OCS), the one of
 ``DofCorrection``; both matrix sources are converted to it. A vector with an invalid corner is
 refused (valid=false + status) unless ``allow_partial``; so is a vector with a Zernike term
 beyond ``max_abs_zernike_nm``, one whose stamp is unset, not newer than the last visit applied
@@ -30,13 +40,19 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core import control as C
 from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC
+from cwfs_ros.ofc.params import CONTROLLERS, controller_from_params, restore_record, state_record
+from cwfs_ros.ofc.persistence import load_state, save_state
+from cwfs_ros.ofc.rotator import RotatorHistory
 
 from .common import (
     DIAGNOSTICS_QOS,
+    ERROR,
     OK,
     OUTPUT_QOS,
     WARN,
@@ -56,16 +72,21 @@ __all__ = ["OfcNode", "build_solver", "main"]
 NODE_NAME = "ofc_node"
 VECTOR_TOPIC = "aos/wfs/wavefront"
 CORRECTION_TOPIC = "aos/ofc/dof_correction"
+JOINT_TOPIC = "joint_states"
+ROTATOR_JOINT = "camera_rotator"
 MATRIX_SOURCES = C.MATRIX_SOURCES
-_SOLVER_PARAMS = ("band", "matrix_source", "method", "n_modes", "alpha", "weights", "kp", "ki",
-                  "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
-                  "max_condition", "max_abs_zernike_nm", "max_future_s")
+_SOLVER_PARAMS = ("controller", "band", "matrix_source", "method", "n_modes", "alpha", "weights",
+                  "kp", "ki", "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
+                  "max_condition", "max_abs_zernike_nm", "max_future_s", "angle_bin_deg",
+                  *KALMAN_PARAM_RANGES)
+# A pid controller has no rotator model: it refuses a camera rotated by more than this.
+_PID_MAX_ANGLE_DEG = 0.01
 
 
-# The matrix of a source and the solver of a parameter set live in the core, where the offline
-# replay of a bag (cwfs_ros.replay) builds the very same solver.
+# The matrix of a source and the controller of a parameter set live in the core, where the
+# offline replay of a bag (cwfs_ros.replay) builds the very same controller.
 sensitivity = C.sensitivity_for_source
-build_solver = C.solver_from_params
+build_solver = controller_from_params
 
 
 class OfcNode(Node):
@@ -78,27 +99,37 @@ class OfcNode(Node):
         self.solver = build_solver(self._param)
         self.dry_run = bool(self._param("dry_run"))
         self.frame_id = str(self._param("frame_id"))
-        # Build the inverse of the all-corners case now, so that the first visit is fast.
-        self.solver.estimate(self.solver.intrinsic_nm)
+        self._warm(self.solver)
         self.refused = RejectionCounter()
         self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
-                      "resets": 0}
+                      "resets": 0, "rotator_samples": 0, "rotator_samples_ignored": 0,
+                      "state_saves_failed": 0}
         self.last_status = "none yet"
         self.last_ms = float("nan")
+        self.last_result: C.OFCResult | None = None
+        self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
+        self.state_file = str(self._param("state_file"))
+        self.state_problem: str | None = None
+        self._load_state()
         self.pub = self.create_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC, self._on_vector,
                                             OUTPUT_QOS)
+        # Joint states come at the rotator's rate: a deeper queue than the outputs', so that a
+        # burst around a visit is not lost; reliable, as robot_state_publisher's are.
+        self.sub_joints = self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
+                                                   100)
         self.srv = self.create_service(Trigger, "~/reset", self._on_reset)
         self._diag_timer = self.create_timer(self._param("diagnostics_period_s"),
                                              self.publish_diagnostics)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
-            f"OFC ready: matrix {self._param('matrix_source')}, {self.solver.method} "
-            f"({self.solver.n_modes} modes), kp {self.solver.kp}, ki {self.solver.ki}, band "
-            f"{self.solver.band}, allow_partial {self.solver.allow_partial}, "
-            f"dry_run {self.dry_run}")
+            f"OFC ready: controller {self._param('controller')}, matrix "
+            f"{self._param('matrix_source')}, band {self.solver.band}, rotator "
+            f"{self._param('rotator_angle_source')}, allow_partial "
+            f"{self.solver.allow_partial}, dry_run {self.dry_run}, state_file "
+            f"{self.state_file or '(none)'}")
 
     # ------------------------------------------------------------------ parameters
     def _param(self, name: str):
@@ -106,6 +137,12 @@ class OfcNode(Node):
 
     def _declare_parameters(self) -> None:
         d = bundled_declarer(self, "ofc_node")
+        d("controller", describe(
+            "kalman: uncertainty-weighted Kalman filter with the field-optimal correction; "
+            "pid: ts_ofc's scheme (range-fwhm weights, truncated SVD, kp/ki), for comparison.",
+            constraints=" | ".join(CONTROLLERS)))
+        self._declare_kalman(d)
+        self._declare_rotator_and_state(d)
         d("band", describe("Band whose intrinsic (design) wavefront is subtracted.",
                                 constraints="u | g | r | i | z | y | ref"))
         d("matrix_source", describe(
@@ -151,8 +188,47 @@ class OfcNode(Node):
         d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
                                                 fp_range=(0.05, 60.0)))
 
+    def _declare_kalman(self, d) -> None:
+        text = {
+            "prior_fraction": "Prior 1-sigma of each DoF after start or ~/reset, x its stroke.",
+            "drift_fraction": "1-sigma drift of the state per visit, x the prior sigma.",
+            "correction_error": "1-sigma error of an applied correction, x its size (the "
+                                "sensitivity model is not the telescope).",
+            "min_snr": "State directions one visit sees below this signal-to-noise ratio are "
+                       "dropped (not updated, not corrected) and reported.",
+            "gain": "Fraction of the field-optimal correction applied per visit.",
+            "default_uncertainty_nm": "1-sigma per Zernike term of a corner that reports none "
+                                      "[nm].",
+            "model_floor_nm": "Added in quadrature to every term's uncertainty [nm].",
+            "nis_limit": "Normalised innovation squared per term above which the filter's "
+                         "covariance is inflated (the telescope moved).",
+            "field_regularization_nm": "Pull of the correction towards the nominal state, nm "
+                                       "of field RMS per prior sigma.",
+        }
+        for name, what in text.items():
+            d(name, describe(f"(kalman) {what}", fp_range=KALMAN_PARAM_RANGES[name]))
+        d("angle_bin_deg", describe(
+            "(kalman) The model is built per rotator-angle bin of this width [deg] and cached.",
+            fp_range=(0.01, 5.0)))
+
+    def _declare_rotator_and_state(self, d) -> None:
+        d("rotator_angle_source", describe(
+            "topic: the camera_rotator joint on joint_states at each visit's stamp; fixed: "
+            "rotator_angle_deg (a bench without a rotator).", constraints="topic | fixed"))
+        d("rotator_angle_deg", describe("Rotator angle with rotator_angle_source fixed [deg].",
+                                        fp_range=(-360.0, 360.0)))
+        d("rotator_tolerance_s", describe(
+            "A visit with no rotator sample within this of its stamp is refused [s].",
+            read_only=True, fp_range=(0.001, 3600.0)))
+        d("state_file", describe(
+            "File the controller state is written to after every applied visit and read at "
+            "start ('' = none); ~/reset clears it.", read_only=True))
+
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         new = {p.name: p.value for p in params}
+        src = new.get("rotator_angle_source")
+        if src is not None and src not in ("topic", "fixed"):
+            return result(False, f"rotator_angle_source must be topic or fixed, got {src!r}")
         if not any(n in new for n in _SOLVER_PARAMS):
             return result(True)
 
@@ -175,10 +251,10 @@ class OfcNode(Node):
             self.frame_id = str(self._param("frame_id"))
             if names & set(_SOLVER_PARAMS):
                 old, new = self.solver, build_solver(self._param)
-                new.restore(old.state())
-                new.estimate(new.intrinsic_nm)
+                kept = restore_record(new, state_record(old))
+                self._warm(new)
                 self.solver = new
-                self.get_logger().info(f"solver rebuilt for {sorted(names)}; state kept")
+                self.get_logger().info(f"controller rebuilt for {sorted(names)}; kept {kept}")
 
     # ------------------------------------------------------------------ control
     def _on_vector(self, msg: WavefrontVector) -> None:
@@ -198,16 +274,93 @@ class OfcNode(Node):
             with self._lock:
                 self.stats["vectors"] += 1
                 dry = self.dry_run
-                s = self.solver
-                if problem is not None:
-                    out = self._refusal(problem)
-                else:
-                    out = s.step(z, valid, stamp_ns=stamp,
-                                 now_ns=self.get_clock().now().nanoseconds, dry_run=dry)
+                if problem is None:
+                    problem = self.state_problem
+                angle, why = self._rotator_angle(stamp)
+                if problem is None and angle is None:
+                    problem = f"no_rotator_angle: {why}"
+                out = self._refusal(problem) if problem is not None else self._step(
+                    z, valid, np.asarray(msg.uncertainty_nm, dtype=np.float64), angle, stamp,
+                    dry)
+                if out.valid and not dry:
+                    self._save_state()
+                self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
             dry = self.dry_run
         self._publish(stamp, out, dry)
+
+    def _step(self, z: np.ndarray, valid: np.ndarray, unc: np.ndarray, angle: float,
+              stamp: int, dry: bool) -> C.OFCResult:
+        s = self.solver
+        now = self.get_clock().now().nanoseconds
+        if isinstance(s, KalmanOFC):
+            return s.step(z, valid, uncertainty_nm=unc, rotator_angle_deg=angle, stamp_ns=stamp,
+                          now_ns=now, dry_run=dry)
+        if abs(angle) > _PID_MAX_ANGLE_DEG:
+            return self._refusal(f"rotator_unsupported: the pid controller has no rotator "
+                                 f"model and the camera is at {angle:.3g} deg; use "
+                                 "controller kalman")
+        return s.step(z, valid, stamp_ns=stamp, now_ns=now, dry_run=dry)
+
+    # ------------------------------------------------------------------ rotator and state
+    def _on_joints(self, msg: JointState) -> None:
+        try:
+            if ROTATOR_JOINT not in msg.name:
+                return
+            i = list(msg.name).index(ROTATOR_JOINT)
+            bad = stamp_problem(msg.header.stamp)
+            why = bad if bad is not None else (
+                "no position for camera_rotator" if i >= len(msg.position) else
+                self.rotator.add(stamp_to_ns(msg.header.stamp), float(msg.position[i])))
+        except Exception as exc:  # noqa: BLE001 - a message must never crash the node
+            why = f"{type(exc).__name__}: {exc}"
+        with self._lock:
+            self.stats["rotator_samples_ignored" if why else "rotator_samples"] += 1
+        if why:
+            self.refused.add("rotator_sample_ignored", why)
+            self.get_logger().warning(f"rotator sample ignored: {why}",
+                                      throttle_duration_sec=10.0)
+
+    def _rotator_angle(self, stamp: int) -> tuple[float | None, str]:
+        if self._param("rotator_angle_source") == "fixed":
+            return float(self._param("rotator_angle_deg")), "fixed"
+        return self.rotator.angle_deg(stamp)
+
+    def _warm(self, s: C.OFCSolver) -> None:
+        """Build what the first visit needs now, so that it is as fast as any other."""
+        if isinstance(s, KalmanOFC):
+            s.warm(0.0)
+        else:
+            s.estimate(s.intrinsic_nm)
+
+    def _load_state(self) -> None:
+        if not self.state_file:
+            return
+        try:
+            rec = load_state(self.state_file)
+            if rec is None:
+                self.get_logger().info(f"no controller state at {self.state_file}: starting "
+                                       "from the prior")
+                return
+            what = restore_record(self.solver, rec)
+            self.get_logger().info(f"controller state restored from {self.state_file}: {what}, "
+                                   f"last visit {self.solver.last_stamp_ns} ns")
+        except ConfigError as exc:
+            # Never act from a state that may be wrong: refuse visits until an operator looks
+            # (~/reset starts from the prior and overwrites the file).
+            self.state_problem = f"state_file_unreadable: {exc}"
+            self.get_logger().error(f"{exc}; every visit is refused until ~/reset")
+
+    def _save_state(self) -> None:
+        if not self.state_file:
+            return
+        try:
+            save_state(self.state_file, state_record(self.solver))
+        except OSError as exc:
+            self.stats["state_saves_failed"] += 1
+            self.get_logger().error(f"controller state not saved to {self.state_file}: {exc}",
+                                    throttle_duration_sec=10.0)
 
     def _refusal(self, status: str) -> C.OFCResult:
         s = self.solver
@@ -216,11 +369,18 @@ class OfcNode(Node):
 
     def _publish(self, stamp: int, out: C.OFCResult, dry: bool) -> None:
         self._account(str(stamp), out)
-        self.pub.publish(dof_correction_msg(
+        msg = dof_correction_msg(
             stamp_ns=stamp, frame_id=self.frame_id, dof=out.dof, dof_total=out.dof_total,
             valid=out.valid, status=out.status, wavefront_rms_nm=out.wavefront_rms_nm,
             predicted_residual_rms_nm=out.predicted_residual_rms_nm, dry_run=dry,
-            n_modes_used=out.n_modes_used))
+            n_modes_used=out.n_modes_used)
+        msg.dof_uncertainty = [float(v) for v in out.dof_uncertainty]
+        msg.field_rms_nm = float(out.field_rms_nm)
+        msg.predicted_field_rms_nm = float(out.predicted_field_rms_nm)
+        msg.rotator_angle_deg = float(out.rotator_angle_deg)
+        msg.n_dropped = int(min(out.n_dropped, 65535))
+        msg.dropped = out.dropped
+        self.pub.publish(msg)
 
     def _account(self, visit: str, out: C.OFCResult) -> None:
         """Count a visit's result for /diagnostics, and log a refusal with its reason."""
@@ -241,8 +401,16 @@ class OfcNode(Node):
             n = self.solver.n_steps
             self.solver.reset()
             self.stats["resets"] += 1
+            self.state_problem = None
+            saved = ""
+            if self.state_file:
+                try:
+                    save_state(self.state_file, state_record(self.solver))
+                    saved = f"; {self.state_file} holds the cleared state"
+                except OSError as exc:
+                    saved = f"; {self.state_file} NOT updated: {exc}"
         response.success = True
-        response.message = f"controller state cleared (it had accumulated {n} visit(s))"
+        response.message = f"controller state cleared (it had accumulated {n} visit(s)){saved}"
         self.get_logger().info(response.message)
         return response
 
@@ -251,20 +419,35 @@ class OfcNode(Node):
         with self._lock:
             stats = dict(self.stats)
             s = self.solver
-            values = [("state", "ready"), ("matrix_source", self._param("matrix_source")),
+            values = [("state", "ready"), ("controller", self._param("controller")),
+                      ("matrix_source", self._param("matrix_source")),
                       ("method", s.method), ("n_modes", s.n_modes), ("kp", s.kp), ("ki", s.ki),
                       ("band", s.band), ("allow_partial", s.allow_partial),
+                      ("rotator_angle_source", self._param("rotator_angle_source")),
+                      *self._last_values(),
                       ("dry_run", self.dry_run), ("n_steps", s.n_steps),
                       ("dof_total_norm", f"{np.linalg.norm(s.dof_total):.4g}"),
                       *stats.items(), ("last_status", self.last_status),
                       ("last_step_ms", f"{self.last_ms:.2f}")]
         values += self.refused.key_values()
-        if self.refused.recent(10.0):
+        if self.state_problem is not None:
+            level, message = ERROR, self.state_problem
+        elif self.refused.recent(10.0):
             level, message = WARN, f"recently refused a visit: {self.refused.last_message}"
         else:
             level, message = OK, "ready"
         return diagnostic_status(f"{self.get_name()}: optical feedback control", level,
                                  message, values, hardware_id="aos_ofc")
+
+    def _last_values(self) -> list[tuple[str, object]]:
+        r = self.last_result
+        if r is None or not r.valid:
+            return []
+        return [("rotator_angle_deg", f"{r.rotator_angle_deg:.3f}"),
+                ("field_rms_nm", f"{r.field_rms_nm:.1f}"),
+                ("predicted_field_rms_nm", f"{r.predicted_field_rms_nm:.1f}"),
+                ("directions_kept", r.n_modes_used), ("directions_dropped", r.n_dropped),
+                ("dropped", r.dropped)]
 
     def publish_diagnostics(self) -> None:
         try:

@@ -1,0 +1,172 @@
+"""The controller's optical model at a camera-rotator angle: what the corners and the field see.
+
+The state ``x`` of the controller is the 50 DoF in the actuators' own convention (the one of
+``DofCorrection``, batoid_rubin's ``LSSTBuilder``). The corner sensors rotate with the camera:
+a sensor whose nominal field is ``f`` (camera frame) sees the telescope field ``R(θ) f`` and
+reports Zernikes in the camera frame. So, per rotator angle ``θ``:
+
+* ``zrot``: camera-frame Z4..Z22 -> telescope frame (:mod:`cwfs_ros.ofc.rotation`);
+* ``dofrot``: actuator DoF -> the telescope-frame DoF of the sensitivity data;
+* ``H = A_tel(R(θ) f_c) @ dofrot``: telescope-frame Zernikes at the corners per DoF unit;
+* ``F = A_tel(gq) @ dofrot``: the same at the 31 Gaussian-quadrature field points;
+* ``intrinsic_nm``: the design wavefront at ``R(θ) f_c``, telescope frame.
+
+A measurement ``y_cam`` is compared with the model as ``zrot @ y_cam - intrinsic = H x``.
+
+The sensitivity at any field point comes from a double Zernike, evaluated here as one matrix
+product with the field-Zernike basis (galsim's ``DoubleZernike`` object per DoF takes 5 s for
+the 31 points; this takes milliseconds). Sources: ``ts_ofc`` (Rubin's yaml) and ``bundled``
+(this project's from batoid, ``config/ofc/sensitivity_dz_bundled.npy`` when present). At
+``θ = 0`` the ``bundled`` corner rows are the bundled 76x50 matrix itself, so an unrotated
+camera sees exactly the matrix the project ships.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import galsim
+import numpy as np
+
+from cwfs_ros.core import control as C
+from cwfs_ros.core.errors import ConfigError
+
+from . import rotation
+from .field import gq_field_points_deg, gq_weights
+
+__all__ = ["BUNDLED_DZ_FILENAME", "ModelAtAngle", "OpticalModel", "double_zernike_at"]
+
+#: This project's double-Zernike sensitivity, (k_field, 23, 50) nm per DoF unit (Noll pupil
+#: index 0..22), wavefront sign, batoid_rubin DoF convention (tools/make_sensitivity.py).
+BUNDLED_DZ_FILENAME = "sensitivity_dz_bundled.npy"
+
+
+@dataclass(frozen=True)
+class ModelAtAngle:
+    """The optical model at one rotator angle (all arrays read-only)."""
+
+    angle_deg: float
+    corner_fields_deg: np.ndarray  # (4, 2) telescope frame
+    zrot: np.ndarray  # (19, 19) camera -> telescope Zernikes
+    dofrot: np.ndarray  # (50, 50) actuator DoF -> telescope-frame DoF
+    H: np.ndarray  # (76, 50) nm per DoF unit
+    intrinsic_nm: np.ndarray  # (76,) telescope frame
+    F: np.ndarray  # (31 * 19, 50) nm per DoF unit at the quadrature points
+    field_weights: np.ndarray  # (31,)
+
+    def to_telescope(self, y_cam: np.ndarray) -> np.ndarray:
+        """(76,) camera-frame corner Zernikes -> telescope frame."""
+        return (y_cam.reshape(-1, C.N_ZK) @ self.zrot.T).reshape(-1)
+
+
+def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray) -> np.ndarray:
+    """Pupil Z4..Z22 per DoF at field points: (n, 19, n_dof) from a (k, j, n_dof) double Zernike.
+
+    Same convention as galsim's ``DoubleZernike`` with the field annulus of ts_ofc's
+    ``configurations/lsst.yaml`` (which :func:`cwfs_ros.core.control._eval_double_zernike`
+    uses): the value is ``sum_k Z_k(field) dz[k, j]``.
+    """
+    cfg = C.load_optics_config()
+    f = np.asarray(fields_deg, dtype=np.float64).reshape(-1, 2)
+    basis = galsim.zernike.zernikeBasis(dz.shape[0] - 1, f[:, 0], f[:, 1],
+                                        R_outer=cfg.field_outer_deg,
+                                        R_inner=cfg.field_inner_deg)  # (k, n)
+    pupil = dz[:, C.NOLL_MIN:C.NOLL_MAX + 1, :]  # (k, 19, d)
+    return np.einsum("kn,kjd->njd", basis, pupil)
+
+
+@lru_cache(maxsize=2)
+def _dz_nm(source: str) -> np.ndarray:
+    """(k, j, 50) double-Zernike sensitivity of ``source`` in nm, wavefront sign, batoid_rubin
+    DoF convention."""
+    if source == "ts_ofc":
+        path = C.ofc_config_dir() / C._TS_OFC_MATRIX  # noqa: SLF001 - one home for the path
+        dz = C._yaml_array(path, 3)  # noqa: SLF001
+        dz = -1000.0 * C.convert_dof_convention(dz, "ts_ofc", "batoid_rubin")
+    elif source == "bundled":
+        path = C.ofc_config_dir() / BUNDLED_DZ_FILENAME
+        if not path.is_file():
+            raise ConfigError(f"{path} is missing: the bundled sensitivity away from the "
+                              "corners (rotated camera, field points) needs it")
+        dz = np.load(path)
+    else:
+        raise ConfigError(f"matrix_source must be one of {C.MATRIX_SOURCES}, got {source!r}")
+    if dz.ndim != 3 or dz.shape[1] <= C.NOLL_MAX or dz.shape[2] != C.N_DOF:
+        raise ConfigError(f"{source} double Zernike must be (k, >22, 50), got {dz.shape}")
+    dz = np.ascontiguousarray(dz, dtype=np.float64)
+    dz.setflags(write=False)
+    return dz
+
+
+def _bundled_dz_available() -> bool:
+    return (C.ofc_config_dir() / BUNDLED_DZ_FILENAME).is_file()
+
+
+class OpticalModel:
+    """The controller's model of the telescope, cached per rotator-angle bin.
+
+    Parameters
+    ----------
+    source : ``"bundled"`` or ``"ts_ofc"`` (the sensitivity data).
+    band : band of the design wavefront subtracted (``u g r i z y ref``).
+    angle_bin_deg : the rotator angle is rounded to this before the model is built; an
+        angle's model is cached (``cache_size`` bins: the live workload's range of angles
+        per night at 0.25 deg fits 2,000 bins, a few MB).
+    """
+
+    def __init__(self, source: str = "bundled", band: str = "r", *,
+                 angle_bin_deg: float = 0.25, cache_size: int = 2048) -> None:
+        if source not in C.MATRIX_SOURCES:
+            raise ConfigError(f"matrix_source must be one of {C.MATRIX_SOURCES}, got {source!r}")
+        if not (np.isfinite(angle_bin_deg) and 0 < angle_bin_deg <= 5):
+            raise ConfigError(f"angle_bin_deg must be in (0, 5], got {angle_bin_deg!r}")
+        self.source = source
+        self.band = band
+        self.angle_bin_deg = float(angle_bin_deg)
+        self.corner_fields_cam_deg = C.corner_mid_field_points_deg()
+        # The field objective uses the same data as the corners where it can; a bundled
+        # matrix without its double Zernike falls back to ts_ofc's for the field and for
+        # rotated corners (stated in docs/closed-loop.md).
+        self.field_source = source if (source == "ts_ofc" or _bundled_dz_available()) \
+            else "ts_ofc"
+        gq = gq_field_points_deg()
+        self._F_tel = double_zernike_at(_dz_nm(self.field_source), gq).reshape(-1, C.N_DOF)
+        self._weights = gq_weights()
+        self._at = lru_cache(maxsize=cache_size)(self._build)
+
+    def bin_angle_deg(self, angle_deg: float) -> float:
+        """The angle the model of ``angle_deg`` is built at (its bin's centre)."""
+        return round(float(angle_deg) / self.angle_bin_deg) * self.angle_bin_deg
+
+    def at(self, angle_deg: float) -> ModelAtAngle:
+        """The model at the rotator angle ``angle_deg`` (degrees), from the cache."""
+        if not np.isfinite(angle_deg):
+            raise ConfigError(f"rotator angle must be finite, got {angle_deg!r}")
+        return self._at(self.bin_angle_deg(angle_deg))
+
+    def _corner_matrix(self, fields_tel: np.ndarray, angle_deg: float) -> np.ndarray:
+        if angle_deg == 0 and self.source == "bundled":
+            return C.sensitivity_for_source("bundled").matrix_nm
+        src = self.source if (self.source == "ts_ofc" or _bundled_dz_available()) else "ts_ofc"
+        return double_zernike_at(_dz_nm(src), fields_tel).reshape(-1, C.N_DOF)
+
+    def _build(self, angle_deg: float) -> ModelAtAngle:
+        theta = np.deg2rad(angle_deg)
+        fields = rotation.telescope_field_deg(self.corner_fields_cam_deg, theta)
+        zrot = rotation.zernike_rotation_matrix(theta)
+        dofrot = rotation.dof_rotation_matrix(theta)
+        H = self._corner_matrix(fields, angle_deg) @ dofrot
+        intr = C.intrinsic_vector_nm(self.band, fields)
+        F = self._F_tel @ dofrot
+        arrays = [np.ascontiguousarray(a, dtype=np.float64)
+                  for a in (fields, zrot, dofrot, H, intr, F)]
+        for a in arrays:
+            a.setflags(write=False)
+        return ModelAtAngle(float(angle_deg), *arrays, self._weights)
+
+
+def bundled_dz_path() -> Path:
+    """Where the bundled double-Zernike sensitivity lives."""
+    return C.ofc_config_dir() / BUNDLED_DZ_FILENAME

@@ -1,0 +1,66 @@
+"""The camera rotator's angle at a visit's stamp, from the stream of its joint states.
+
+ROS-free: ofc_node feeds it the ``camera_rotator`` position of each ``JointState`` and asks for
+the angle at each visit's stamp. The rotator holds still during an exposure and its position
+is published at a few Hz or more, so the angle of the sample nearest to the stamp is the
+visit's, provided that sample is within ``tolerance_s``; between two samples that bracket
+the stamp the angle is interpolated linearly. A visit with no sample near enough gets no angle:
+the controller refuses it rather than guess (a wrong angle mixes the corners' Zernikes).
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+
+import numpy as np
+
+__all__ = ["RotatorHistory"]
+
+
+class RotatorHistory:
+    """Bounded history of ``(stamp_ns, angle_deg)`` samples, in stamp order."""
+
+    def __init__(self, tolerance_s: float = 2.0, max_samples: int = 4096) -> None:
+        self.tolerance_ns = int(tolerance_s * 1e9)
+        self._stamps: deque[int] = deque(maxlen=max_samples)
+        self._angles: deque[float] = deque(maxlen=max_samples)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._angles.clear()
+
+    def add(self, stamp_ns: int, angle_rad: float) -> str | None:
+        """Record a sample; returns why it was ignored (non-finite, unset or older stamp)."""
+        if not np.isfinite(angle_rad):
+            return f"non-finite rotator position {angle_rad!r}"
+        if stamp_ns <= 0:
+            return "rotator sample with an unset stamp"
+        if self._stamps and stamp_ns < self._stamps[-1]:
+            return (f"rotator sample at {stamp_ns} ns is older than the last one "
+                    f"({self._stamps[-1]} ns)")
+        self._stamps.append(int(stamp_ns))
+        self._angles.append(float(np.rad2deg(angle_rad)))
+        return None
+
+    def angle_deg(self, stamp_ns: int) -> tuple[float | None, str]:
+        """The angle at ``stamp_ns`` [deg], or None with the reason."""
+        if not self._stamps:
+            return None, "no camera rotator angle received yet"
+        stamps = list(self._stamps)
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if 0 < i < len(stamps) and stamps[i] - stamps[i - 1] <= 2 * self.tolerance_ns:
+            t0, t1 = stamps[i - 1], stamps[i]
+            a0, a1 = self._angles[i - 1], self._angles[i]
+            w = (stamp_ns - t0) / (t1 - t0) if t1 > t0 else 0.0
+            return a0 + w * (a1 - a0), "interpolated"
+        near = min((j for j in (i - 1, i) if 0 <= j < len(stamps)),
+                   key=lambda j: abs(stamps[j] - stamp_ns))
+        gap = abs(stamps[near] - stamp_ns)
+        if gap <= self.tolerance_ns:
+            return self._angles[near], "nearest"
+        return None, (f"no camera rotator angle within {self.tolerance_ns / 1e9:g} s of the "
+                      f"visit (nearest sample {gap / 1e9:.3g} s away)")
