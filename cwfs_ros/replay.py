@@ -76,6 +76,8 @@ CORNER_TYPE = "cwfs_msgs/msg/CornerWavefront"
 DOF_TOPIC = "/aos/ofc/dof_correction"
 DOF_TYPE = "cwfs_msgs/msg/DofCorrection"
 SIM_TRUTH_TOPIC = "/aos/sim/truth"
+JOINT_TOPIC = "/joint_states"
+JOINT_TYPE = "sensor_msgs/msg/JointState"
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -207,7 +209,6 @@ class _Pipeline:
     """wavefront_node + ofc_node, minus the middleware (see the module docstring)."""
 
     def __init__(self, wf: dict[str, Any], ofc: dict[str, Any]) -> None:
-        from .core import control
         from .core.corner_pool import EstimatorSettings, validate_settings
         from .core.images import Orientation
         from .core.visits import PairingBuffer, VisitAssembler, load_corner_fields
@@ -222,8 +223,13 @@ class _Pipeline:
         timeout = float(wf["visit_timeout_s"])
         self.pairing = PairingBuffer(_CORNERS, tolerance_ns=tol, timeout_s=timeout)
         self.assembler = VisitAssembler(tolerance_ns=tol, timeout_s=timeout)
-        self.solver = control.solver_from_params(lambda n: ofc[n])
+        from .ofc.params import controller_from_params
+        from .ofc.rotator import RotatorHistory
+
+        self.solver = controller_from_params(lambda n: ofc[n])
         self.dry_run = bool(ofc["dry_run"])
+        self.ofc_params = ofc
+        self.rotator = RotatorHistory(float(ofc["rotator_tolerance_s"]))
         self.corners: list[CornerRow] = []
         self.dofs: list[DofRow] = []
         self.rejections: list[str] = []
@@ -303,14 +309,40 @@ class _Pipeline:
             self._vector(vec)
 
     # -- the ofc_node path
+    def joints(self, msg: Any) -> None:
+        """A recorded JointState: the camera rotator's angle, as ofc_node takes it."""
+        from .core.visits import stamp_to_ns
+        from .ofc.rotator import ROTATOR_JOINT
+
+        if ROTATOR_JOINT in msg.name:
+            i = list(msg.name).index(ROTATOR_JOINT)
+            if i < len(msg.position):
+                self.rotator.add(stamp_to_ns(msg.header.stamp), float(msg.position[i]))
+
     def _ofc(self, vec: Any) -> None:
         import numpy as np
 
+        from .core import control
+        from .ofc.kalman import KalmanOFC
+
         # The visit-order rules of ofc_node (OFCSolver.step); not the clock's: a bag's
         # stamps are in the past of any clock it is replayed by.
-        out = self.solver.step(np.asarray(vec.zernikes_nm, dtype=np.float64),
-                               np.asarray(vec.corner_valid, dtype=bool),
-                               stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
+        z = np.asarray(vec.zernikes_nm, dtype=np.float64)
+        valid = np.asarray(vec.corner_valid, dtype=bool)
+        unc = getattr(vec, "uncertainty_nm", None)
+        if self.ofc_params["rotator_angle_source"] == "fixed":
+            angle, why = float(self.ofc_params["rotator_angle_deg"]), ""
+        else:
+            angle, why = self.rotator.angle_deg(int(vec.stamp_ns))
+        if angle is None:
+            out = control.OFCResult(np.zeros(control.N_DOF), self.solver.dof_total.copy(),
+                                    False, f"no_rotator_angle: {why}", float("nan"),
+                                    float("nan"), 0)
+        elif isinstance(self.solver, KalmanOFC):
+            out = self.solver.step(z, valid, uncertainty_nm=unc, rotator_angle_deg=angle,
+                                   stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
+        else:
+            out = self.solver.step(z, valid, stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
         self.dofs.append(DofRow(
             self._visit(vec.stamp_ns), int(vec.stamp_ns), bool(out.valid), out.status,
             float(out.wavefront_rms_nm), float(out.predicted_residual_rms_nm),
@@ -448,7 +480,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
         pipe = _Pipeline(wf, ofc)
         live_corners: dict[tuple, Any] = {}
         live_dofs: dict[int, Any] = {}
-        topics = [*images, *live, *([DOF_TOPIC] if has_dof else [])]
+        joints = [JOINT_TOPIC] if (JOINT_TOPIC in bag.topics and bag.topics[
+            JOINT_TOPIC].type == JOINT_TYPE and not bag.decode_problem(JOINT_TOPIC)) else []
+        topics = [*images, *live, *([DOF_TOPIC] if has_dof else []), *joints]
         # One BLAS/OpenMP thread, as in the node's worker processes (corner_pool._worker_init):
         # the sums then run in the same order and the estimates agree with the live ones to
         # the last bit (with two threads they differed by up to 1e-4 nm). The limit only
@@ -465,6 +499,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
                 if m.topic in images:
                     pipe.image(msg, *images[m.topic], m.timestamp_ns / 1e9)
                     bar.update(1)
+                elif m.topic == JOINT_TOPIC:
+                    pipe.joints(msg)
                 elif m.topic in live:
                     live_corners[(str(msg.corner) or live[m.topic],
                                   stamp_to_ns(msg.header.stamp))] = msg

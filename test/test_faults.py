@@ -78,8 +78,9 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-    ofc = OfcNode(context=ctx, parameter_overrides=[Parameter("diagnostics_period_s",
-                                                              value=0.5)])
+    ofc = OfcNode(context=ctx, parameter_overrides=[
+        Parameter("diagnostics_period_s", value=0.5),
+        Parameter("rotator_angle_source", value="fixed")])  # no rotator on this bench
     tester = rclpy.create_node("fault_tester", context=ctx)
     ex.add_node(ofc)
     ex.add_node(tester)

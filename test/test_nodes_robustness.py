@@ -168,8 +168,10 @@ def test_wavefront_node_never_crashes_on_bad_input(ros_context, spin):
 
 
 def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
+    # ts_ofc's scheme, so that OFCSolver is the reference; no rotator on this bench
     ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
-        Parameter("diagnostics_period_s", value=0.2)]))
+        Parameter("diagnostics_period_s", value=0.2), Parameter("controller", value="pid"),
+        Parameter("rotator_angle_source", value="fixed")]))
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     out: list[DofCorrection] = []
@@ -468,7 +470,8 @@ def test_a_worker_lost_during_warm_up_is_warmed_again(ros_context, monkeypatch):
 def test_ofc_node_refuses_a_vector_whose_stamp_no_correction_could_carry(ros_context):
     """nanosec >= 1e9: refused before the step (a step whose correction then failed to
     publish would leave the controller state ahead of the telescope), counted, not raised."""
-    ofc = OfcNode(context=ros_context)
+    ofc = OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed")])
     try:
         sent = _capture(ofc.pub)
         m = WavefrontVector()

@@ -48,7 +48,7 @@ from cwfs_ros.core.errors import ConfigError
 from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC
 from cwfs_ros.ofc.params import CONTROLLERS, controller_from_params, restore_record, state_record
 from cwfs_ros.ofc.persistence import load_state, save_state
-from cwfs_ros.ofc.rotator import RotatorHistory
+from cwfs_ros.ofc.rotator import ROTATOR_JOINT, RotatorHistory
 
 from .common import (
     DIAGNOSTICS_QOS,
@@ -73,7 +73,6 @@ NODE_NAME = "ofc_node"
 VECTOR_TOPIC = "aos/wfs/wavefront"
 CORRECTION_TOPIC = "aos/ofc/dof_correction"
 JOINT_TOPIC = "joint_states"
-ROTATOR_JOINT = "camera_rotator"
 MATRIX_SOURCES = C.MATRIX_SOURCES
 _SOLVER_PARAMS = ("controller", "band", "matrix_source", "method", "n_modes", "alpha", "weights",
                   "kp", "ki", "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",

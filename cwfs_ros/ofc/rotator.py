@@ -15,7 +15,10 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["RotatorHistory"]
+__all__ = ["ROTATOR_JOINT", "RotatorHistory"]
+
+#: Name of the camera rotator's joint in ``sensor_msgs/JointState`` (position in radians).
+ROTATOR_JOINT = "camera_rotator"
 
 
 class RotatorHistory:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cwfs_ros.core import control as C
+from cwfs_ros.ofc import rotation
 from cwfs_ros.ofc.field import field_rms_nm, gq_field_points_deg
 from cwfs_ros.sim.render import true_zernikes_nm
 from cwfs_ros.sim.telescope import perturbed_telescope
@@ -45,15 +46,29 @@ class TruthModel:
                                           wavelength_nm=self.wavelength_nm, nx=self.nx)
                          for f in fields])
 
-    def corners_nm(self, dof: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(76,) total corner wavefront and (76,) its departure from the design [nm]."""
-        z = self._zk(perturbed_telescope(dof, self.band), self.corners_deg)
-        return z.reshape(-1), (z - self._design_corners).reshape(-1)
+    def corners_nm(self, dof: np.ndarray, angle_deg: float = 0.0
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(76,) camera-frame corner wavefront and (76,) its departure from the design [nm].
 
-    def field_error_nm(self, dof: np.ndarray) -> float:
-        """True field-averaged wavefront error of a state [nm]."""
-        z = self._zk(perturbed_telescope(dof, self.band), self.gq_deg)
-        return field_rms_nm(z - self._design_field)
+        With the camera rotated by ``angle_deg``, the camera-frame Zernikes at ``f`` are the
+        unrotated telescope's (DoF ``M @ dof``) at the telescope field ``R f``, rotated back
+        (:mod:`cwfs_ros.ofc.rotation`; ``test/test_rotation.py`` checks it against batoid's
+        rotated camera to < 0.001 nm).
+        """
+        th = np.deg2rad(angle_deg)
+        tel = perturbed_telescope(rotation.dof_rotation_matrix(th) @ dof, self.band)
+        fields = rotation.telescope_field_deg(self.corners_deg, th)
+        zr = rotation.zernike_rotation_matrix(th)
+        design = self._design_corners if angle_deg == 0 else self._zk(
+            perturbed_telescope(np.zeros(C.N_DOF), self.band), fields)
+        z_cam = self._zk(tel, fields) @ zr  # zr is orthogonal: z_cam = zr.T @ z_tel
+        return z_cam.reshape(-1), ((self._zk(tel, fields) - design) @ zr).reshape(-1)
+
+    def field_error_nm(self, dof: np.ndarray, angle_deg: float = 0.0) -> float:
+        """True field-averaged wavefront error of a state [nm] (telescope frame)."""
+        th = np.deg2rad(angle_deg)
+        tel = perturbed_telescope(rotation.dof_rotation_matrix(th) @ dof, self.band)
+        return field_rms_nm(self._zk(tel, self.gq_deg) - self._design_field)
 
 
 @dataclass
@@ -73,6 +88,7 @@ class LoopTrace:
 
 def run_model_loop(controller: C.OFCSolver, initial_dof: np.ndarray, visits: int, *,
                    truth: TruthModel, noise_nm: float = 15.0, seed: int = 0,
+                   angle_deg: float = 0.0,
                    step: Callable[..., C.OFCResult] | None = None) -> LoopTrace:
     """Run ``visits`` visits: measure (truth + noise), step the controller, apply.
 
@@ -85,17 +101,18 @@ def run_model_loop(controller: C.OFCSolver, initial_dof: np.ndarray, visits: int
     trace = LoopTrace()
     unc = np.full(C.N_MEAS, noise_nm)
     for k in range(visits):
-        total, departure = truth.corners_nm(dof)
+        total, departure = truth.corners_nm(dof, angle_deg)
         trace.corner_nm.append(float(np.mean(np.linalg.norm(
             departure.reshape(C.N_CORNERS, C.N_ZK), axis=1))))
-        trace.field_nm.append(truth.field_error_nm(dof))
+        trace.field_nm.append(truth.field_error_nm(dof, angle_deg))
         trace.states.append(dof.copy())
         measured = total + rng.normal(0.0, noise_nm, total.size)
         stamp = (k + 1) * 40_000_000_000
         if step is not None:
             res = step(controller, measured, unc, stamp)
         elif hasattr(controller, "settings"):
-            res = controller.step(measured, uncertainty_nm=unc, stamp_ns=stamp)
+            res = controller.step(measured, uncertainty_nm=unc, stamp_ns=stamp,
+                                  rotator_angle_deg=angle_deg)
         else:
             res = controller.step(measured, stamp_ns=stamp)
         trace.valid.append(res.valid)
