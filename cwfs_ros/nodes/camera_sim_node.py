@@ -6,7 +6,12 @@ out  ``/aos/wfs/<corner>/<intra|extra>/image``  sensor_msgs/Image 32FC1, the 8 s
      visit (4 corners x intra (SW1, detector -1.5 mm) / extra (SW0, +1.5 mm)), all with the
      same ``header.stamp``
 out  ``/aos/sim/truth``          cwfs_msgs/SimTruth, same stamp: DoF state, true total and
-     intrinsic Zernikes at the corner mid points (layout of WavefrontVector), visit number
+     intrinsic Zernikes at the corner mid points in the camera frame (layout of
+     WavefrontVector), visit number, rotator angle, and the corner and field figures
+     (``cwfs_ros.sim.field_truth``: field wavefront error, optical FWHM)
+out  ``/joint_states``           sensor_msgs/JointState, joint ``camera_rotator``, position
+     [rad] = ``rotator_angle_deg`` of the visit, stamped with the visit's stamp and published
+     before its images
 in   ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection: a valid, non-dry-run correction is
      added to the DoF state (used from the next rendered visit)
 out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored
@@ -14,7 +19,10 @@ srv  ``~/trigger``               std_srvs/Trigger: render one visit now (the onl
      ``visit_period_s`` is 0)
 
 The telescope is :func:`cwfs_ros.sim.perturbed_telescope` at the current 50-DoF state (ts_ofc
-order and units, the batoid_rubin sign convention of ``DofCorrection``). Each visit is
+order and units, the batoid_rubin sign convention of ``DofCorrection``) with the camera rotated
+by ``rotator_angle_deg`` (batoid_rubin's ``with_rtp``; read at the start of each visit): each
+corner sensor's donuts are traced at the telescope field ``R(angle) f`` of its nominal field
+``f`` and imaged in the rotated camera's own frame (:mod:`cwfs_ros.ofc.rotation`). Each visit is
 rendered by :func:`cwfs_ros.sim.render_donut` (photon tracing, random sub-stamp offsets,
 Poisson noise, sky subtracted) in a background thread, so the executor is never blocked;
 visits never overlap, and a period that falls while a visit is still rendering is skipped
@@ -33,11 +41,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.blur import MAX_SEEING_FWHM_ARCSEC
 from cwfs_ros.core.visits import CORNERS
+from cwfs_ros.ofc.rotation import telescope_field_deg
+from cwfs_ros.sim.field_truth import field_truth
 from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
 from cwfs_ros.sim.visit import (
@@ -72,6 +82,9 @@ SIDES = ("intra", "extra")
 IMAGE_TOPIC = "aos/wfs/{corner}/{side}/image"
 TRUTH_TOPIC = "aos/sim/truth"
 CORRECTION_TOPIC = "aos/ofc/dof_correction"
+JOINT_STATES_TOPIC = "joint_states"
+ROTATOR_JOINT = "camera_rotator"
+ROTATOR_RANGE_DEG = (-270.0, 270.0)
 
 
 def band_wavelength_nm(band: str) -> float:
@@ -115,9 +128,10 @@ class CameraSimNode(Node):
         missing = [c for c in CORNERS if c not in self.geometry]
         if missing:
             raise ValueError(f"corner geometry lacks {missing}")
-        # The design (intrinsic) wavefront at the corner mid points: fixed for the band.
-        nominal = sim.perturbed_telescope(np.zeros(N_DOF), self.band)
-        self.intrinsic_nm = self._truth_vector(nominal)
+        # The design (intrinsic) wavefront at the corner mid points, camera frame: fixed for
+        # the band and the rotator angle (cached per angle).
+        self._intrinsic_by_angle: dict[float, np.ndarray] = {}
+        self.intrinsic_nm = self._intrinsic(0.0)
 
         self._pool = make_render_pool(int(p("render_workers")))
         self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
@@ -128,6 +142,9 @@ class CameraSimNode(Node):
         self.last_status = "no visit yet"
         self.last_frame_stars: dict = {}
         self.last_true_error_nm = float("nan")
+        self.last_field_error_nm = float("nan")
+        self.last_fwhm_arcsec = float("nan")
+        self.last_rotator_angle_deg = float(p("rotator_angle_deg"))
         self._busy = False
         self._closing = False
         self._thread: threading.Thread | None = None
@@ -136,6 +153,9 @@ class CameraSimNode(Node):
                                                    IMAGE_QOS)
                      for c in CORNERS for s in SIDES}
         self.pub_truth = self.create_publisher(SimTruth, TRUTH_TOPIC, OUTPUT_QOS)
+        # Reliable, keep-last 10, volatile: the ROS convention for joint_states, and a
+        # controller matches each visit's stamp against the angles it has received.
+        self.pub_joint = self.create_publisher(JointState, JOINT_STATES_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         self.sub = self.create_subscription(DofCorrection, CORRECTION_TOPIC,
                                             self._on_correction, OUTPUT_QOS)
@@ -212,6 +232,11 @@ class CameraSimNode(Node):
             "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
             "1 = in the node's render thread). The images do not depend on it.",
             int_range=(0, 64), **ro))
+        d("rotator_angle_deg", describe(
+            "Camera rotator angle [deg] (batoid_rubin's with_rtp: the camera turned by "
+            "RotZ(angle) before the DoF are applied), read at the start of each visit and "
+            "published on joint_states as joint camera_rotator [rad].",
+            fp_range=ROTATOR_RANGE_DEG))
         d("apply_corrections", describe(
             "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
         d("actuator_noise", describe(
@@ -228,6 +253,9 @@ class CameraSimNode(Node):
         for prm in params:
             if prm.name == "actuator_noise" and not (0.0 <= float(prm.value) <= 10.0):
                 return result(False, "actuator_noise must be in [0, 10]")
+            lo, hi = ROTATOR_RANGE_DEG
+            if prm.name == "rotator_angle_deg" and not (lo <= float(prm.value) <= hi):
+                return result(False, f"rotator_angle_deg must be in [{lo:g}, {hi:g}]")
         return result(True)
 
     # ------------------------------------------------------------------ state
@@ -242,11 +270,25 @@ class CameraSimNode(Node):
         with self._lock:
             return self._busy
 
-    def _truth_vector(self, telescope) -> np.ndarray:
+    def _truth_vector(self, telescope, angle_deg: float) -> np.ndarray:
+        """True Zernikes at the corner mid points, camera frame (what the sensors measure)."""
         return np.concatenate([
-            self._sim.true_zernikes_nm(telescope, self.geometry[c].mid_field_deg,
-                                       wavelength_nm=self.wavelength_nm)
+            self._sim.camera_zernikes_nm(telescope, self.geometry[c].mid_field_deg, angle_deg,
+                                         wavelength_nm=self.wavelength_nm)
             for c in CORNERS])
+
+    def _intrinsic(self, angle_deg: float) -> np.ndarray:
+        with self._lock:
+            cached = self._intrinsic_by_angle.get(angle_deg)
+        if cached is None:
+            nominal = self._sim.perturbed_telescope(np.zeros(N_DOF), self.band,
+                                                    rotator_angle_deg=angle_deg)
+            cached = self._truth_vector(nominal, angle_deg)
+            with self._lock:
+                if len(self._intrinsic_by_angle) > 64:
+                    self._intrinsic_by_angle.clear()
+                self._intrinsic_by_angle[angle_deg] = cached
+        return cached
 
     # ------------------------------------------------------------------ corrections
     def _on_correction(self, msg: DofCorrection) -> None:
@@ -288,7 +330,8 @@ class CameraSimNode(Node):
             self.visit += 1
             visit = self.visit
             dof = self._dof.copy()
-            self._thread = threading.Thread(target=self._render_visit, args=(visit, dof),
+            angle = float(self._param("rotator_angle_deg"))
+            self._thread = threading.Thread(target=self._render_visit, args=(visit, dof, angle),
                                             name=f"camera_sim_visit_{visit}", daemon=True)
             self._thread.start()
         return True, f"visit {visit} started"
@@ -302,28 +345,48 @@ class CameraSimNode(Node):
         response.success, response.message = self.request_visit()
         return response
 
-    def _render_visit(self, visit: int, dof: np.ndarray) -> None:
+    def _publish_rotator(self, stamp_ns: int, angle_deg: float) -> None:
+        msg = JointState()
+        msg.header.stamp = ns_to_stamp(stamp_ns)
+        msg.header.frame_id = self.frame_id
+        msg.name = [ROTATOR_JOINT]
+        msg.position = [float(np.deg2rad(angle_deg))]
+        self.pub_joint.publish(msg)
+
+    def _truth_msg(self, tel, visit: int, dof: np.ndarray, angle_deg: float,
+                   stamp_ns: int) -> SimTruth:
+        truth = SimTruth()
+        truth.header.stamp = ns_to_stamp(stamp_ns)
+        truth.header.frame_id = self.frame_id
+        truth.dof_state = np.asarray(dof, dtype=np.float64)
+        truth.zernikes_nm = self._truth_vector(tel, angle_deg)
+        truth.intrinsic_nm = np.asarray(self._intrinsic(angle_deg), dtype=np.float64)
+        truth.visit = int(visit)
+        truth.band = self.band
+        truth.rotator_angle_deg = float(angle_deg)
+        truth.corner_wavefront_rms_nm = wavefront_error_nm(truth.zernikes_nm,
+                                                           truth.intrinsic_nm)
+        field = field_truth(tel, self.band, wavelength_nm=self.wavelength_nm)
+        truth.field_wavefront_rms_nm = field.field_wavefront_rms_nm
+        truth.fwhm_arcsec = field.fwhm_arcsec
+        return truth
+
+    def _render_visit(self, visit: int, dof: np.ndarray, angle_deg: float = 0.0) -> None:
         t0 = time.monotonic()
         try:
             stamp_ns = self.get_clock().now().nanoseconds
+            self._publish_rotator(stamp_ns, angle_deg)  # before the visit's images
             p = self._param
             npix, n_photons = int(p("npix")), float(p("n_photons"))
             sky, off_max = float(p("sky_per_pixel")), float(p("offset_px_max"))
-            tel = self._sim.perturbed_telescope(dof, self.band)
+            tel = self._sim.perturbed_telescope(dof, self.band, rotator_angle_deg=angle_deg)
             if bool(p("frames")):
-                images = self._render_frames(tel)
+                images = self._render_frames(tel, angle_deg)
             else:
-                images = self._render_stamps(tel, npix, n_photons, sky, off_max)
+                images = self._render_stamps(tel, npix, n_photons, sky, off_max, angle_deg)
             if self._closing:
                 return
-            truth = SimTruth()
-            truth.header.stamp = ns_to_stamp(stamp_ns)
-            truth.header.frame_id = self.frame_id
-            truth.dof_state = np.asarray(dof, dtype=np.float64)
-            truth.zernikes_nm = self._truth_vector(tel)
-            truth.intrinsic_nm = np.asarray(self.intrinsic_nm, dtype=np.float64)
-            truth.visit = int(visit)
-            truth.band = self.band
+            truth = self._truth_msg(tel, visit, dof, angle_deg, stamp_ns)
             msgs = {k: image_msg(v.astype(np.float32), stamp_ns, encoding="32FC1",
                                  frame_id=self.frame_id) for k, v in images.items()}
             if self._closing:
@@ -336,12 +399,17 @@ class CameraSimNode(Node):
                 self.stats["visits_rendered"] += 1
                 self.last_render_s = dt
                 self.last_status = f"visit {visit} published"
-            wfe = wavefront_error_nm(truth.zernikes_nm, truth.intrinsic_nm)
+            wfe = truth.corner_wavefront_rms_nm
             with self._lock:
                 self.last_true_error_nm = wfe
-            self.get_logger().info(f"visit {visit} published (rendered in {dt:.1f} s, true "
-                                   f"wavefront error {wfe:.1f} nm, |dof| "
-                                   f"{np.linalg.norm(dof):.4g})")
+                self.last_field_error_nm = truth.field_wavefront_rms_nm
+                self.last_fwhm_arcsec = truth.fwhm_arcsec
+                self.last_rotator_angle_deg = angle_deg
+            self.get_logger().info(
+                f"visit {visit} published (rendered in {dt:.1f} s, rotator {angle_deg:g} deg, "
+                f"true wavefront error {wfe:.1f} nm at the corners, "
+                f"{truth.field_wavefront_rms_nm:.1f} nm over the field, optical FWHM "
+                f"{truth.fwhm_arcsec:.3f} arcsec, |dof| {np.linalg.norm(dof):.4g})")
         except Exception as exc:  # noqa: BLE001 - a failed visit must not kill the node
             with self._lock:
                 self.stats["visits_failed"] += 1
@@ -353,8 +421,9 @@ class CameraSimNode(Node):
                 self._busy = False
 
     def _render_stamps(self, tel, npix: int, n_photons: float, sky: float,
-                       off_max: float) -> dict:
-        """The 8 one-donut stamps of a visit (sky subtracted)."""
+                       off_max: float, angle_deg: float = 0.0) -> dict:
+        """The 8 one-donut stamps of a visit (sky subtracted), at the telescope fields the
+        rotated corners see."""
         p = self._param
         # Offsets and per-donut seeds are drawn here, in a fixed order, so the images do
         # not depend on how many render workers there are.
@@ -365,14 +434,15 @@ class CameraSimNode(Node):
                                     ("extra", g.extra_field_deg, g.extra_offset_mm)):
                 offset = (tuple(float(x) for x in self._rng.uniform(-off_max, off_max, 2))
                           if off_max > 0 else (0.0, 0.0))
-                specs.append(DonutSpec((c, side), tuple(field), float(dz), offset,
-                                       int(self._rng.integers(2**62))))
+                g = telescope_field_deg(field, np.deg2rad(angle_deg))[0]
+                specs.append(DonutSpec((c, side), (float(g[0]), float(g[1])), float(dz),
+                                       offset, int(self._rng.integers(2**62))))
         return render_visit(tel, specs, wavelength_nm=self.wavelength_nm, npix=npix,
                             n_photons=n_photons, sky_per_pixel=sky,
                             seeing_fwhm_arcsec=float(p("seeing_fwhm_arcsec")),
                             read_noise_e=float(p("read_noise_e")), executor=self._pool)
 
-    def _render_frames(self, tel) -> dict:
+    def _render_frames(self, tel, angle_deg: float = 0.0) -> dict:
         """The 8 half-chip frames of a visit, several stars each (sky included)."""
         p = self._param
         rows, cols = int(p("frame_rows")), int(p("frame_cols"))
@@ -386,7 +456,7 @@ class CameraSimNode(Node):
                 specs.append(FrameSpec((c, side), tuple(field), float(dz), (rows, cols),
                                        (nmin, max(nmin, nmax)), (lo, max(lo, hi)),
                                        bool(p("frame_blend")), bool(p("frame_faint")),
-                                       int(self._rng.integers(2**62))))
+                                       int(self._rng.integers(2**62)), float(angle_deg)))
         frames = render_frames(tel, specs, band=self.band, wavelength_nm=self.wavelength_nm,
                                sky_per_pixel=float(p("sky_per_pixel")),
                                read_noise_e=float(p("read_noise_e")),
@@ -408,6 +478,9 @@ class CameraSimNode(Node):
                       ("dof_norm", f"{np.linalg.norm(self._dof):.4g}"),
                       ("last_render_s", f"{self.last_render_s:.2f}"),
                       ("true_wavefront_error_nm", f"{self.last_true_error_nm:.1f}"),
+                      ("true_field_wavefront_error_nm", f"{self.last_field_error_nm:.1f}"),
+                      ("true_fwhm_arcsec", f"{self.last_fwhm_arcsec:.3f}"),
+                      ("rotator_angle_deg", f"{self.last_rotator_angle_deg:g}"),
                       ("last_status", self.last_status)]
             failed = stats["visits_failed"] > 0 and "failed" in self.last_status
         values += self.ignored.key_values()

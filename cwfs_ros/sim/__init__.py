@@ -13,6 +13,7 @@ not by a pupil-to-image mapping, so closed-loop tests are not an inverse crime.
 from .render import (
     CornerSensor,
     TracedRays,
+    camera_zernikes_nm,
     corner_fields,
     load_corner_geometry,
     plate_scale_um_per_arcsec,
@@ -44,6 +45,7 @@ __all__ = [
     "CornerSensor",
     "TracedRays",
     "bending_zernikes",
+    "camera_zernikes_nm",
     "corner_fields",
     "defocused",
     "load_corner_geometry",

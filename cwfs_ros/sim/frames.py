@@ -32,7 +32,7 @@ import batoid
 import numpy as np
 
 from .render import render_donut
-from .telescope import defocused, load_lsst
+from .telescope import defocused, load_lsst, perturbed_telescope
 
 __all__ = ["StarSpec", "InjectedStar", "SimulatedFrame", "star_field_deg", "random_stars",
            "render_frame", "donut_outer_radius_px"]
@@ -56,7 +56,8 @@ class InjectedStar:
 
     Attributes:
         x, y: chief-ray pixel (col, row), pixel-centre convention.
-        field_deg: the star's field angle (deg), batoid field frame.
+        field_deg: the star's field angle (deg), batoid field frame (the telescope frame;
+            with a rotated camera, ``R(angle)`` times the camera-frame field).
         flux: expected photons entering the unvignetted pupil; ``photons`` the drawn number.
         flags: any of :data:`FLAGS`.
     """
@@ -210,7 +211,8 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
                  read_noise_e: float = 0.0, full_well_e: float | None = None,
                  render_px: int = 200, pixel_um: float = 10.0,
                  seeing_fwhm_arcsec: float = 0.0,
-                 rng: np.random.Generator | None = None) -> SimulatedFrame:
+                 rng: np.random.Generator | None = None,
+                 rotator_angle_deg: float = 0.0) -> SimulatedFrame:
     """Render a half-chip frame with the given stars.
 
     Args:
@@ -230,6 +232,9 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
             is displaced at random, as in :func:`~cwfs_ros.sim.render.render_donut`); 0 =
             none, which leaves the frame's random stream as it was without seeing.
         rng: random generator.
+        rotator_angle_deg: camera rotator angle [deg]; ``telescope`` must be built with the
+            same angle. ``field_ref_deg`` is then the camera-frame (nominal) field of the
+            half-chip, and star fields are found through the rotated design.
 
     Returns:
         A :class:`SimulatedFrame`.
@@ -239,10 +244,17 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     ref = reference_px if reference_px is not None else ((cols - 1) / 2.0, (rows - 1) / 2.0)
     img = np.zeros((rows, cols), dtype=np.float64)
     design = load_lsst(band)
+    ref_field = field_ref_deg
+    if rotator_angle_deg:
+        from ..ofc.rotation import telescope_field_deg
+
+        design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
+        g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]
+        ref_field = (float(g[0]), float(g[1]))
     truth = []
     c = (render_px - 1) / 2.0
     for s in stars:
-        fld = star_field_deg(s.x, s.y, field_ref_deg=field_ref_deg, reference_px=ref,
+        fld = star_field_deg(s.x, s.y, field_ref_deg=ref_field, reference_px=ref,
                              detector_offset_mm=detector_offset_mm, band=band,
                              wavelength_nm=wavelength_nm, pixel_um=pixel_um, optic=design)
         n = int(rng.poisson(s.flux))

@@ -9,8 +9,10 @@ shows up. The surviving rays are binned into pixels.
 Image frame
 -----------
 Stamps are ``image[row, col]`` with ``col`` increasing with the detector-frame x and ``row``
-increasing with y. For a telescope whose camera is not rotated, those are batoid's global
-focal-plane x and y. In batoid's LSST model a star at field angle (+theta_x, 0) images at
+increasing with y: batoid traces to the detector's local frame, so a rotated camera
+(``perturbed_telescope(..., rotator_angle_deg=a)``) is imaged in its own frame. For a
+telescope whose camera is not rotated, those are batoid's global focal-plane x and y. In
+batoid's LSST model a star at field angle (+theta_x, 0) images at
 focal-plane +x (plate scale ~ +10.31 m/rad), so the stamp frame is the frame of the field
 angles. ``np.histogram2d(y, x, ...)`` would give the same layout.
 
@@ -45,6 +47,7 @@ from .telescope import defocused
 __all__ = [
     "CornerSensor",
     "TracedRays",
+    "camera_zernikes_nm",
     "corner_fields",
     "load_corner_geometry",
     "plate_scale_um_per_arcsec",
@@ -405,6 +408,39 @@ def true_zernikes_nm(
     wl_m = float(wavelength_nm) * 1e-9
     zk_waves = batoid.zernike(telescope, thx, thy, wl_m, jmax=jmax, eps=eps, nx=nx)
     return np.asarray(zk_waves[4 : jmax + 1], dtype=np.float64) * float(wavelength_nm)
+
+
+def camera_zernikes_nm(
+    telescope: batoid.Optic,
+    field_camera_deg: tuple[float, float],
+    rotator_angle_deg: float,
+    *,
+    wavelength_nm: float,
+    nx: int = 128,
+) -> np.ndarray:
+    """True Z4..Z22 [nm] that a sensor of the rotated camera measures: the camera frame.
+
+    Parameters
+    ----------
+    telescope : the in-focus telescope built with the same ``rotator_angle_deg``
+        (:func:`~cwfs_ros.sim.telescope.perturbed_telescope`).
+    field_camera_deg : the sensor's nominal (camera-frame) field point [deg].
+    rotator_angle_deg : camera rotator angle [deg].
+
+    Returns
+    -------
+    (19,) array [nm]: :func:`true_zernikes_nm` at the telescope field ``R(angle) f`` that the
+    sensor sees, turned from the telescope pupil axes into the camera's
+    (``zernike_rotation_matrix(angle).T``; :mod:`cwfs_ros.ofc.rotation`). At angle 0 it is
+    :func:`true_zernikes_nm` at ``f``.
+    """
+    from ..ofc.rotation import telescope_field_deg, zernike_rotation_matrix
+
+    a = np.deg2rad(float(rotator_angle_deg))
+    g = telescope_field_deg(field_camera_deg, a)[0]
+    z = true_zernikes_nm(telescope, (float(g[0]), float(g[1])), wavelength_nm=wavelength_nm,
+                         nx=nx)
+    return zernike_rotation_matrix(a).T @ z if a else z
 
 
 # --------------------------------------------------------------------------------------

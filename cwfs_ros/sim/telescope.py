@@ -191,9 +191,15 @@ def _apply_rigid(optic: batoid.Optic, name: str, block: np.ndarray) -> batoid.Op
 
 
 @lru_cache(maxsize=16)
-def _perturbed_cached(band: str, dof_bytes: bytes) -> batoid.Optic:
+def _perturbed_cached(band: str, dof_bytes: bytes, rotator_angle_deg: float = 0.0
+                      ) -> batoid.Optic:
     dof = np.frombuffer(dof_bytes, dtype=np.float64)
     optic = load_lsst(band)
+    if rotator_angle_deg:
+        # batoid_rubin's LSSTBuilder._apply_rtp, before the rigid-body DoF: the camera shifts
+        # stay global (telescope frame), its tilts turn about the rotated camera's axes.
+        optic = optic.withLocallyRotatedOptic(_CAMERA,
+                                              batoid.RotZ(np.deg2rad(rotator_angle_deg)))
     optic = _apply_rigid(optic, "M2", dof[0:5])
     optic = _apply_rigid(optic, _CAMERA, dof[5:10])
     if np.any(dof[10:]):
@@ -211,6 +217,7 @@ def perturbed_telescope(
     band: str = "r",
     *,
     convention: str = "batoid_rubin",
+    rotator_angle_deg: float = 0.0,
 ) -> batoid.Optic:
     """Return the LSST model perturbed by a ts_ofc-ordered DoF vector (in focus).
 
@@ -223,13 +230,19 @@ def perturbed_telescope(
         ``LSSTBuilder``. ``"ts_ofc"`` first negates DoF ``TS_OFC_FLIPPED_DOF`` (dz, dx, rx
         of M2 and camera), so that the model matches ts_ofc's sensitivity matrix (see the
         module docstring).
+    rotator_angle_deg : camera rotator angle [deg]. As batoid_rubin's
+        ``LSSTBuilder.with_rtp``, the camera becomes ``withLocallyRotatedOptic("LSSTCamera",
+        batoid.RotZ(angle))`` *before* the DoF are applied: the camera's dz, dx, dy stay in
+        the telescope frame, its rx, ry act about the rotated camera's axes, and rays traced
+        to the detector come out in the rotated camera's own frame. See
+        :mod:`cwfs_ros.ofc.rotation`.
 
     Returns
     -------
     batoid.Optic
         The perturbed telescope with its detector at the nominal focal plane. Results are
-        cached in a small LRU keyed by ``(band, dof.tobytes())``. Optics are immutable, so
-        sharing them is safe.
+        cached in a small LRU keyed by ``(band, dof.tobytes(), rotator_angle_deg)``. Optics
+        are immutable, so sharing them is safe.
     """
     d = _as_dof(dof)
     if band not in BANDS:
@@ -240,7 +253,10 @@ def perturbed_telescope(
         d = d.copy()
         d[list(TS_OFC_FLIPPED_DOF)] *= -1.0
         d += 0.0  # -0.0 -> +0.0, so equal states share a cache entry
-    return _perturbed_cached(band, d.tobytes())
+    angle = float(rotator_angle_deg)
+    if not np.isfinite(angle):
+        raise ValueError(f"rotator_angle_deg must be finite, got {rotator_angle_deg}")
+    return _perturbed_cached(band, d.tobytes(), angle + 0.0)
 
 
 def defocused(telescope: batoid.Optic, detector_offset_mm: float) -> batoid.Optic:

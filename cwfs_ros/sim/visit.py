@@ -29,7 +29,9 @@ class DonutSpec:
 
     Attributes:
         key: the caller's name for it, e.g. ``("R00", "intra")``.
-        field_deg: field angle (x, y) of the star [deg].
+        field_deg: field angle (x, y) of the star [deg], telescope frame (batoid's global
+            field; with a rotated camera, ``cwfs_ros.ofc.rotation.telescope_field_deg`` of
+            the sensor's camera-frame field).
         detector_offset_mm: detector offset from focus [mm]; negative = intra-focal.
         offset_px: donut offset from the stamp centre (x, y) [px].
         seed: seed of this donut's photon sampling and noise.
@@ -117,6 +119,8 @@ class FrameSpec:
         flux_range: photons per isolated star.
         blend, faint: also inject a blended pair / a too-faint star.
         seed: seed of this frame's layout, photons and noise.
+        rotator_angle_deg: camera rotator angle [deg] of the telescope the frame is rendered
+            through; ``field_ref_deg`` is then the camera-frame (nominal) field.
     """
 
     key: Hashable
@@ -128,6 +132,7 @@ class FrameSpec:
     blend: bool
     faint: bool
     seed: int
+    rotator_angle_deg: float = 0.0
 
 
 def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelength_nm: float,
@@ -142,7 +147,7 @@ def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelengt
                         detector_offset_mm=spec.detector_offset_mm, shape_px=spec.shape_px,
                         band=band, wavelength_nm=wavelength_nm, sky_per_pixel=sky_per_pixel,
                         read_noise_e=read_noise_e, seeing_fwhm_arcsec=seeing_fwhm_arcsec,
-                        rng=rng)
+                        rng=rng, rotator_angle_deg=spec.rotator_angle_deg)
 
 
 def render_frames(telescope: batoid.Optic, specs: Sequence[FrameSpec], *, band: str,
