@@ -62,7 +62,7 @@ def kalman(source: str = "bundled", mask: np.ndarray | None = None) -> KalmanOFC
 def row(label: str, tr: LoopTrace, shown: int = 10) -> str:
     f = tr.field_nm
     return (f"{label:<40} " + " ".join(f"{x:6.0f}" for x in f[:shown])
-            + f"   x{f[0] / min(f[1:5]):5.1f} within 4 visits"
+            + f"   x{f[0] / min(f[1:4]):5.1f} within 4 visits"
             + ("" if all(tr.valid) else f"  ({sum(not v for v in tr.valid)} refused)"))
 
 

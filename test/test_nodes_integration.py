@@ -23,7 +23,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from sensor_msgs.msg import Image  # noqa: E402
+from sensor_msgs.msg import Image, JointState  # noqa: E402
 
 from cwfs_ros.core.visits import CORNERS  # noqa: E402
 from cwfs_ros.launch import run_nodes  # noqa: E402
@@ -93,8 +93,13 @@ class Tester:
         self.node.create_subscription(DofCorrection, "aos/ofc/dof_correction",
                                       self.dof.append, OUTPUT_QOS)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)
+        self.joints = self.node.create_publisher(JointState, "joint_states", 100)
 
     def publish_visit(self, images, stamp, replace=None):
+        # the camera rotator's position at the visit, as the telescope publishes it
+        js = JointState(name=["camera_rotator"], position=[0.0])
+        js.header.stamp.sec, js.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        self.joints.publish(js)
         replace = replace or {}
         for (c, s), img in images.items():
             msg = replace.get((c, s)) or image_msg(img, stamp, encoding=ENCODINGS[c],
@@ -185,7 +190,11 @@ def test_visit_through_both_nodes(visit, system):
     assert np.all(np.isfinite(dc.dof)) and np.any(dc.dof != 0)
     np.testing.assert_allclose(dc.dof_total, dc.dof)  # first visit: state = this correction
     assert dc.wavefront_rms_nm > 0 and dc.predicted_residual_rms_nm < dc.wavefront_rms_nm
-    assert dc.n_modes_used == 12 and dc.header.frame_id == "telescope"
+    assert dc.header.frame_id == "telescope" and dc.rotator_angle_deg == 0.0
+    # the Kalman controller: what it kept and dropped, each DoF's uncertainty, the field
+    assert dc.n_dropped > 0 and dc.n_modes_used + dc.n_dropped == 50 and "snr" in dc.dropped
+    assert np.all(np.asarray(dc.dof_uncertainty)[:10] > 0)
+    assert 0 <= dc.predicted_field_rms_nm < dc.field_rms_nm
 
     # ---- the same visit with a bad image on R40: no valid correction for that visit
     bad = image_msg(images[("R40", "intra")], S2, encoding="32FC1")

@@ -1,0 +1,126 @@
+"""ofc_node killed at visit 5 and restarted: it continues from its persisted state.
+
+ofc_node runs in its own process (``python -m cwfs_ros.launch node ofc_node``, as a user
+starts it) with ``state_file`` set; this process is the telescope: it publishes each visit's
+76-vector, computed from its own state with the *ts_ofc* matrix while the controller uses
+the bundled one, and applies each valid correction. After the correction of visit 5 the node
+is SIGKILLed and started again. Expected: visit 5 sent again is refused (not applied twice),
+visit 6 continues from the accumulated state (``dof_total`` carries on), and the wavefront
+error keeps falling.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import spin_thread, wait_for
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip("rclpy")
+
+from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
+
+from cwfs_ros.core import control as C  # noqa: E402
+from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SEC = 1_000_000_000
+
+
+def _start_ofc(domain: int, state_file: Path) -> subprocess.Popen:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
+               PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
+    cmd = [sys.executable, "-m", "cwfs_ros.launch", "node", "ofc_node", "--ros-args",
+           "-p", f"state_file:={state_file}", "-p", "rotator_angle_source:=fixed"]
+    return subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+
+
+def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_path):
+    state_file = tmp_path / "ofc_state.json"
+    truth = C.SensitivityMatrix.from_ts_ofc(fields_deg=C.corner_mid_field_points_deg())
+    intrinsic = C.intrinsic_vector_nm("r", truth.field_points_deg)
+    telescope = np.zeros(C.N_DOF)
+    telescope[[1, 2, 6, 8]] = [500.0, -300.0, 400.0, 0.004]  # decentres and a camera tilt
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+    tester = rclpy.create_node("telescope", context=ctx)
+    ex.add_node(tester)
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    got: dict[int, list[DofCorrection]] = {}
+    tester.create_subscription(
+        DofCorrection, "aos/ofc/dof_correction",
+        lambda m: got.setdefault(stamp_to_ns(m.header.stamp), []).append(m), OUTPUT_QOS)
+    th = spin_thread(ex)
+    th.start()
+    # visits 40 s apart (the LSST cadence), all in the past of the node's clock
+    t0 = (time.time_ns() // SEC) * SEC - 400 * SEC
+    errors: list[float] = []
+
+    def visit(k: int) -> DofCorrection:
+        stamp = t0 + k * 40 * SEC
+        m = WavefrontVector()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+        wf = truth.matrix_nm @ telescope
+        errors.append(float(np.linalg.norm(wf)))
+        m.zernikes_nm = intrinsic + wf
+        m.corner_valid = [True] * 4
+        m.corners = ["R00", "R04", "R40", "R44"]
+        m.uncertainty_nm = np.full(C.N_MEAS, 10.0)
+        m.n_pairs = [1] * 4
+        seen = len(got.get(stamp, []))
+        pub.publish(m)
+        wait_for(lambda: len(got.get(stamp, [])) > seen, 30, f"the correction of visit {k}")
+        return got[stamp][-1]
+
+    proc = _start_ofc(ros_domain, state_file)
+    try:
+        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to start")
+        for k in range(1, 6):
+            d = visit(k)
+            assert d.valid, d.status
+            telescope += np.asarray(d.dof)
+        total_5 = np.asarray(d.dof_total)
+        saved = json.loads(state_file.read_text())
+        assert saved["last_stamp_ns"] == t0 + 5 * 40 * SEC and saved["n_steps"] == 5
+        _kill(proc)
+        wait_for(lambda: pub.get_subscription_count() == 0, 30, "the old node to vanish")
+        proc = _start_ofc(ros_domain, state_file)
+        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to restart")
+        again = visit(5)
+        assert not again.valid and again.status.startswith("stale_visit"), again.status
+        assert not np.any(again.dof)
+        d6 = visit(6)
+        assert d6.valid, d6.status
+        np.testing.assert_allclose(np.asarray(d6.dof_total), total_5 + np.asarray(d6.dof),
+                                   rtol=0, atol=1e-9 * (1 + np.abs(total_5).max()))
+        telescope += np.asarray(d6.dof)
+        visit(7)
+        assert errors[-1] < errors[0] / 10, errors
+        # a new node does not start from the prior: its uncertainty is the persisted one,
+        # far below the prior of a first visit (0.2 x 6700 um for M2_dx)
+        assert 0 < d6.dof_uncertainty[1] < 0.1 * 0.2 * 6700
+    finally:
+        _kill(proc)
+        ex.shutdown()
+        tester.destroy_node()
+        rclpy.shutdown(context=ctx)
+        th.join(5)
