@@ -25,30 +25,17 @@ import numpy as np
 from cwfs_ros.core import control as C
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.model import OpticalModel
-from cwfs_ros.sim.perturbation import true_error_of_state_nm
+from cwfs_ros.sim.perturbation import stroke_perturbation
 from cwfs_ros.validation.loop_model import LoopTrace, TruthModel, run_model_loop
 
-ARCSEC_DEG = 1.0 / 3600.0
 GROUPS = {"M2 hexapod": slice(0, 5), "camera hexapod": slice(5, 10),
           "M1M3 bending": slice(10, 30), "M2 bending": slice(30, 50)}
 
 
 def perturbation(kind: str, seed: int, target_nm: float) -> np.ndarray:
-    """The closed-loop issue's classes: hexapod decentres up to 1 mm and tilts up to 30
-    arcsec (pistons up to 50 µm), bending modes up to 0.3 x range, or both; scaled down
-    (never up past those strokes) to ``target_nm`` of corner wavefront error."""
-    rng = np.random.default_rng(seed)
-    spec = C.load_dof_spec()
-    dof = np.zeros(C.N_DOF)
-    if kind in ("rigid", "mixed"):
-        for base in (0, 5):
-            dof[base] = rng.uniform(-50, 50)
-            dof[base + 1:base + 3] = rng.uniform(-1000, 1000, 2)
-            dof[base + 3:base + 5] = rng.uniform(-30, 30, 2) * ARCSEC_DEG
-    if kind in ("bending", "mixed"):
-        dof[10:] = rng.uniform(-0.3, 0.3, 40) * spec.range[10:]
-    err = true_error_of_state_nm(dof)
-    return dof * min(1.0, target_nm / err) if kind != "bending" else dof * target_nm / err
+    """The closed-loop issue's classes (:func:`cwfs_ros.sim.perturbation.stroke_perturbation`)
+    scaled to ``target_nm`` of corner wavefront error."""
+    return stroke_perturbation(kind, seed, target_nm)
 
 
 def pid() -> C.OFCSolver:
