@@ -283,6 +283,7 @@ class OfcNode(Node):
                     dry)
                 if out.valid and not dry:
                     self._save_state()
+                self._log_observability_change(out)
                 self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
@@ -327,11 +328,30 @@ class OfcNode(Node):
         return self.rotator.angle_deg(stamp)
 
     def _warm(self, s: C.OFCSolver) -> None:
-        """Build what the first visit needs now, so that it is as fast as any other."""
+        """Build what the first visit needs now, so that it is as fast as any other, and say
+        which DoF of the mask the corners cannot see at all."""
+        self.unseen_dof = ""
         if isinstance(s, KalmanOFC):
             s.warm(0.0)
+            obs = s.observability_report()
+            names = [s.spec.names[i] for i in np.flatnonzero(s.dof_mask)]
+            unseen = [n for n, v in zip(names, obs.dof_visibility, strict=True) if v < 0.1]
+            self.unseen_dof = ", ".join(unseen)
+            self.get_logger().info(
+                f"the four corners observe {obs.n_kept} of {len(names)} state directions "
+                f"(min_snr {s.settings.min_snr:g})" + (
+                    f"; not seen at all (less than 10 % of the DoF in the kept directions), "
+                    f"drop them from dof_mask to stop carrying them: {self.unseen_dof}"
+                    if unseen else ""))
         else:
             s.estimate(s.intrinsic_nm)
+
+    def _log_observability_change(self, out: C.OFCResult) -> None:
+        last = self.last_result
+        if out.valid and (last is None or not last.valid or last.n_dropped != out.n_dropped):
+            self.get_logger().info(
+                f"{out.n_modes_used} state directions kept, {out.n_dropped} dropped (seen "
+                f"below min_snr this visit){': ' + out.dropped if out.dropped else ''}")
 
     def _load_state(self) -> None:
         if not self.state_file:
@@ -423,6 +443,7 @@ class OfcNode(Node):
                       ("method", s.method), ("n_modes", s.n_modes), ("kp", s.kp), ("ki", s.ki),
                       ("band", s.band), ("allow_partial", s.allow_partial),
                       ("rotator_angle_source", self._param("rotator_angle_source")),
+                      ("dof_not_seen", self.unseen_dof or "none"),
                       *self._last_values(),
                       ("dry_run", self.dry_run), ("n_steps", s.n_steps),
                       ("dof_total_norm", f"{np.linalg.norm(s.dof_total):.4g}"),
