@@ -97,6 +97,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         errors = sys.modules.get("cwfs_ros.core.errors")
         if errors is not None and isinstance(exc, errors.CwfsError):
             return _error(args.command, str(exc))
+        tools = sys.modules.get("cwfs_ros.rostools")
+        if tools is not None and isinstance(exc, tools.ToolError):
+            _error(args.command, str(exc))
+            return tools.EXIT_NOT_FOUND
         raise
 
 
@@ -420,6 +424,17 @@ def _register_validate_subcommand() -> None:
 
 
 _register_validate_subcommand()
+
+
+def _register_rostools_subcommands() -> None:
+    # topic list|echo|hz and param list|get|set|dump (`node list` is on the node parser).
+    from .rostools import add_param_parser, add_topic_parser
+
+    subcommand(add_topic_parser)
+    subcommand(add_param_parser)
+
+
+_register_rostools_subcommands()
 
 
 def format_result(result: Any) -> str:
