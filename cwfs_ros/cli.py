@@ -372,8 +372,7 @@ def _add_pair_demo(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--photons", type=_finite_float, default=1e6,
                    help="photons per donut (default: %(default)g)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
-    p.add_argument("--solver", choices=SOLVER_CHOICES, default="exp",
-                   help="TIE solver (default: %(default)s)")
+    p.add_argument("--solver", choices=SOLVER_CHOICES, default="lsq", help=SOLVER_HELP)
     p.set_defaults(func=_run_pair_demo)
     return p
 
@@ -381,8 +380,9 @@ def _add_pair_demo(subparsers: Any) -> argparse.ArgumentParser:
 def _run_pair_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .core import estimate_wavefront
-    from .plotting import plot_result
+    from .core import estimate_wavefront, load_instrument
+    from .pair_figure import plot_estimate_truth_design
+    from .provenance import assess
     from .sim.render import render_donut, true_zernikes_nm
     from .sim.telescope import perturbed_telescope
 
@@ -394,8 +394,8 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
     field = tuple(args.field)
     tel = perturbed_telescope(dof, band="r")
     truth = true_zernikes_nm(tel, field, wavelength_nm=622.0)
-    print(f"perturbation: M2 {np.round(dof[:5], 3).tolist()}, camera "
-          f"{np.round(dof[5:10], 3).tolist()}; wavefront {np.sqrt(np.sum(truth**2)):.0f} nm")
+    print(f"perturbation: {format_hexapods(dof)}; wavefront "
+          f"{np.sqrt(np.sum(truth**2)):.0f} nm (sqrt of the sum of Z4..Z22 squared)")
     print(f"ray-tracing intra and extra donuts ({args.photons:g} photons each) ...", flush=True)
     intra, extra = (render_donut(tel, field, dz, wavelength_nm=622.0, npix=160,
                                  n_photons=args.photons, sky_per_pixel=50.0,
@@ -403,16 +403,28 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
     result = estimate_wavefront(intra, extra, field_intra_deg=field, field_extra_deg=field,
                                 solver=args.solver)
     print(format_result(result))
+    print(format_checks(assess(result, load_instrument("lsst"), 1.5)))
     err = result.zernikes_nm - truth
     print(f"{'Noll':>4}  {'estimate':>9}  {'truth':>9}  {'error':>7}   (nm)")
     for j, e, t, d in zip(result.noll, result.zernikes_nm, truth, err, strict=True):
         print(f"{int(j):>4}  {e:>9.1f}  {t:>9.1f}  {d:>7.1f}")
     print(f"RMS error {np.sqrt(np.mean(err**2)):.1f} nm over Z4-Z22")
-    png = plot_result(result, args.out / "demo_estimate.png", intra=intra, extra=extra,
-                      title="ray-traced LSST pair (batoid), estimate vs truth")
+    png = plot_estimate_truth_design(
+        result, truth, args.out / "demo_estimate.png", intra=intra, extra=extra,
+        title=f"ray-traced, perturbed LSST pair (batoid) at field ({field[0]:g}, "
+              f"{field[1]:g}) deg, {args.photons:g} photons per donut\n{format_hexapods(dof)}")
     np.savez(args.out / "demo_pair.npz", intra=intra, extra=extra, truth_nm=truth, dof=dof)
     print(f"report: {png.resolve()}")
     return 0
+
+
+def format_hexapods(dof: Any) -> str:
+    """The M2 and camera hexapod DoF (0-9 of the 50) with their units."""
+    def one(v: Any) -> str:
+        return (f"dz {v[0]:+.2f} um, dx {v[1]:+.1f} um, dy {v[2]:+.1f} um, "
+                f"rx {v[3]:+.4f} deg, ry {v[4]:+.4f} deg")
+
+    return f"M2 {one(dof[:5])}; camera {one(dof[5:10])}"
 
 
 def _register_ros_subcommands() -> None:
