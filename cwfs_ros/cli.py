@@ -53,7 +53,11 @@ EXIT_CODES = (
 
 
 def exit_codes_epilog() -> str:
-    return "exit status:\n" + "\n".join(f"  {c:>3}  {t}" for c, t in EXIT_CODES)
+    import textwrap
+
+    return "exit status:\n" + "\n".join(
+        textwrap.fill(t, 79, initial_indent=f"  {c:>3}  ", subsequent_indent=" " * 7)
+        for c, t in EXIT_CODES)
 
 # Registered sub-command builders, in the order they appear in ``--help``.
 _SUBCOMMANDS: list[Callable[[Any], argparse.ArgumentParser]] = []

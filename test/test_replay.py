@@ -351,7 +351,7 @@ def _renamed_bag(src: Path, dst: Path, rename: dict, rotate: str | None = None) 
         conns = {}
         for c in reader.connections:
             conns[c.id] = writer.add_connection(
-                rename.get(c.topic, c.topic), c.msgtype, msgdef=c.msgdef, rihs01=c.digest,
+                rename.get(c.topic, c.topic), c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest,
                 serialization_format="cdr",
                 offered_qos_profiles=c.ext.offered_qos_profiles)
         for c, t, data in reader.messages():
