@@ -174,6 +174,10 @@ def test_pair_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
     assert png.stat().st_size > 10_000
     saved = np.load(tmp_path / "demo_pair.npz")
     assert saved["intra"].shape == (160, 160) and saved["truth_nm"].shape == (19,)
+    # The perturbation with its units; lsq, the default solver.
+    pert = next(ln for ln in proc.stdout.splitlines() if ln.startswith("perturbation:"))
+    assert pert.count(" um,") == 6 and pert.count(" deg") == 4, pert
+    assert "solver lsq" in proc.stdout
     rms_line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("RMS error"))
     # Several hundred nm of wavefront, recovered to tens of nm at this photon count.
     assert float(rms_line.split()[2]) < 40.0
