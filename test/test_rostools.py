@@ -136,6 +136,15 @@ def test_tools_say_when_the_node_or_topic_is_not_there(graph, capsys):
     assert code == 1 and "topic /no/topic not found" in err and out == ""
 
 
+def test_echo_says_when_no_message_comes_in_time(graph, capsys):
+    from std_msgs.msg import String
+
+    _, pub = graph
+    pub.create_publisher(String, "/test/silent", 10)  # there, but never publishes
+    code, out, err = _run(capsys, "topic", "echo", "/test/silent", "--once", "--wait", "1")
+    assert code == 1 and out == "" and "/test/silent: 0 of 1 message(s) within 1 s" in err
+
+
 def _publish_periodically(node, msg_type, topic, make, period_s=0.1):
     pub = node.create_publisher(msg_type, topic, 10)
     n = [0]
