@@ -11,9 +11,13 @@ arguments and returning the exit status) with ``parser.set_defaults(func=...)``.
 imports (the core, matplotlib, rclpy) belong inside the handler, so that ``--help`` and
 ``--version`` stay fast and a sub-command never pays for another's dependencies.
 
-Exit status: 0 on success, 2 for bad input or configuration (argparse's own usage errors,
-:class:`~cwfs_ros.core.errors.CwfsError`, unreadable or unwritable files), each reported as
-one ``cwfs-ros <command>: error: <message>`` line on stderr without a traceback.
+Exit status (:data:`EXIT_CODES`, printed by ``--help``): 0 on success; 1 a check that
+failed (``demo --check``) or a ROS tool whose node or topic is not there; 2 for bad input
+or configuration (argparse's own usage errors, :class:`~cwfs_ros.core.errors.CwfsError`,
+unreadable or unwritable files, a file that is not an image, a field outside the
+instrument's field of view), each reported as one ``cwfs-ros <command>: error: <message>``
+line on stderr without a traceback; 3 an estimate flagged unusable (caustic, implausible),
+unless ``--allow-flagged``; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -33,7 +37,27 @@ from .argtypes import positive_int as _positive_int
 __all__ = ["main", "build_parser", "subcommand", "CliError"]
 
 PROG = "cwfs-ros"
+EXIT_FAILED = 1
 EXIT_USAGE = 2
+EXIT_FLAGGED = 3
+EXIT_CODES = (
+    (0, "success"),
+    (EXIT_FAILED, "a check failed (demo --check), or a ROS tool found no such node or topic, "
+                  "no message in time, or a parameter the node refused"),
+    (EXIT_USAGE, "bad input or configuration: usage, a missing or unreadable file, not an "
+                 "image, a field outside the instrument's field of view, a bad parameter"),
+    (EXIT_FLAGGED, "estimate/batch: an estimate flagged unusable (caustic, implausible); "
+                   "--allow-flagged prints it and exits 0"),
+    (130, "interrupted"),
+)
+
+
+def exit_codes_epilog() -> str:
+    import textwrap
+
+    return "exit status:\n" + "\n".join(
+        textwrap.fill(t, 79, initial_indent=f"  {c:>3}  ", subsequent_indent=" " * 7)
+        for c, t in EXIT_CODES)
 
 # Registered sub-command builders, in the order they appear in ``--help``.
 _SUBCOMMANDS: list[Callable[[Any], argparse.ArgumentParser]] = []
@@ -55,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
         description="Curvature wavefront sensing for Rubin/LSST (ROS 2 package cwfs_ros).",
+        epilog=exit_codes_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -97,6 +122,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         errors = sys.modules.get("cwfs_ros.core.errors")
         if errors is not None and isinstance(exc, errors.CwfsError):
             return _error(args.command, str(exc))
+        tools = sys.modules.get("cwfs_ros.rostools")
+        if tools is not None and isinstance(exc, tools.ToolError):
+            _error(args.command, str(exc))
+            return tools.EXIT_NOT_FOUND
         raise
 
 
@@ -104,6 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 # -- estimate -----------------------------------------------------------------------------
 
 SOLVER_CHOICES = ("exp", "fft", "lsq")
+SOLVER_HELP = ("TIE solver: lsq (least squares; the smallest error in every measured case), "
+               "or the paper's exp (series expansion) and fft (iterative FFT), kept to "
+               "reproduce its figures (default: %(default)s)")
 
 
 @subcommand
@@ -114,17 +146,24 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
         description=(
             "Estimate the wavefront (annular Zernikes Z4..Z22, nm of OPD) at the mid-point "
             "of the two stars' field positions from an intra- and an extra-focal donut "
-            "image (.npy, FITS, or ZEMAX-style text)."
+            "image (.npy, FITS, or ZEMAX-style text). FITS files may carry the geometry in "
+            "their header: FIELD_X, FIELD_Y (deg) and DEFOCUS (signed mm, negative intra); "
+            "the command line wins. An estimate flagged unusable (caustic, or a departure "
+            "from design the telescope cannot hold) is not printed: exit 3."
         ),
+        epilog=exit_codes_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("intra", metavar="INTRA", help="intra-focal image file")
     p.add_argument("extra", metavar="EXTRA", help="extra-focal image file")
-    p.add_argument("--field-intra", nargs=2, type=_finite_float, required=True,
-                   metavar=("X", "Y"), help="field angle of the intra-focal star (deg)")
-    p.add_argument("--field-extra", nargs=2, type=_finite_float, required=True,
-                   metavar=("X", "Y"), help="field angle of the extra-focal star (deg)")
+    p.add_argument("--field-intra", nargs=2, type=_finite_float,
+                   metavar=("X", "Y"), help="field angle of the intra-focal star (deg; "
+                                            "default: FIELD_X/FIELD_Y of its FITS header)")
+    p.add_argument("--field-extra", nargs=2, type=_finite_float,
+                   metavar=("X", "Y"), help="field angle of the extra-focal star (deg; "
+                                            "default: FIELD_X/FIELD_Y of its FITS header)")
     p.add_argument("--defocal-offset", type=_finite_float, metavar="MM",
-                   help="|detector offset| from focus in mm (default: the instrument's)")
+                   help="|detector offset| from focus in mm (default: |DEFOCUS| of the FITS "
+                        "headers, else the instrument's)")
     p.add_argument("--instrument", default="lsst", metavar="NAME|PATH",
                    help="instrument name under config/instruments, or a YAML path "
                         "(default: %(default)s)")
@@ -132,8 +171,11 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
                    help="optical band (default: the instrument's default band)")
     p.add_argument("--wavelength", type=_finite_float, metavar="NM",
                    help="wavelength in nm (default: the band's effective wavelength)")
-    p.add_argument("--solver", choices=SOLVER_CHOICES, default="exp",
-                   help="TIE solver (default: %(default)s)")
+    p.add_argument("--solver", choices=SOLVER_CHOICES, default="lsq",
+                   help=SOLVER_HELP)
+    p.add_argument("--allow-flagged", action="store_true",
+                   help="print a flagged estimate (caustic, implausible) anyway, with its "
+                        "flags, and exit 0")
     p.add_argument("--iterations", type=_positive_int, metavar="N",
                    help="outer iterations (default: config/algorithm.yaml)")
     p.add_argument("--seeing", type=_finite_float, default=0.0, metavar="ARCSEC",
@@ -149,45 +191,38 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-def _read(path: str, role: str, text_flip: bool) -> Any:
-    from .core.io import read_image
-
-    p = Path(path)
-    if not p.exists():
-        raise CliError(f"{role} image {path}: no such file")
-    if not p.is_file():
-        raise CliError(f"{role} image {path}: not a regular file")
-    return read_image(path, text_flip=text_flip)
-
-
 def _run_estimate(args: argparse.Namespace) -> int:
-    from .core import estimate_wavefront, load_instrument
+    from .provenance import run_pair
 
     if args.plot is not None and not args.plot.resolve().parent.is_dir():
         raise CliError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
-    inst = load_instrument(args.instrument)
-    intra = _read(args.intra, "intra", args.text_flip)
-    extra = _read(args.extra, "extra", args.text_flip)
     overrides: dict[str, Any] = {}
     if args.iterations is not None:
         overrides["outer_iterations"] = args.iterations
-    result = estimate_wavefront(
-        intra, extra,
-        field_intra_deg=tuple(args.field_intra), field_extra_deg=tuple(args.field_extra),
-        instrument=inst, band=args.band or inst.default_band, wavelength_nm=args.wavelength,
-        defocal_offset_mm=args.defocal_offset, solver=args.solver,
-        seeing_fwhm_arcsec=args.seeing, **overrides,
-    )
+    run = run_pair(args.intra, args.extra, field_intra=args.field_intra,
+                   field_extra=args.field_extra, instrument=args.instrument, band=args.band,
+                   wavelength_nm=args.wavelength, defocal_offset_mm=args.defocal_offset,
+                   solver=args.solver, seeing_fwhm_arcsec=args.seeing,
+                   text_flip=args.text_flip, **overrides)
+    result = run.result
+    if run.flags and not args.allow_flagged:
+        for c in run.flags:
+            print(f"{PROG} estimate: flagged: {c.name}: {c.detail}", file=sys.stderr)
+        print(f"{PROG} estimate: the estimate is not usable and is not printed "
+              f"(--allow-flagged prints it); exit {EXIT_FLAGGED}", file=sys.stderr)
+        return EXIT_FLAGGED
     if args.plot is not None:
         from .plotting import plot_result
 
         title = f"{Path(args.intra).name} / {Path(args.extra).name}"
-        plot_result(result, args.plot, intra=intra, extra=extra, title=title)
+        plot_result(result, args.plot, intra=run.inputs["intra"].image,
+                    extra=run.inputs["extra"].image, title=title)
     if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2)
+        json.dump({**result.as_dict(), **run.record}, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         print(format_result(result))
+        print(format_checks(run.checks))
         if args.plot is not None:
             print(f"plot: {args.plot}")
     return 0
@@ -348,8 +383,7 @@ def _add_pair_demo(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--photons", type=_finite_float, default=1e6,
                    help="photons per donut (default: %(default)g)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
-    p.add_argument("--solver", choices=SOLVER_CHOICES, default="exp",
-                   help="TIE solver (default: %(default)s)")
+    p.add_argument("--solver", choices=SOLVER_CHOICES, default="lsq", help=SOLVER_HELP)
     p.set_defaults(func=_run_pair_demo)
     return p
 
@@ -357,8 +391,9 @@ def _add_pair_demo(subparsers: Any) -> argparse.ArgumentParser:
 def _run_pair_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .core import estimate_wavefront
-    from .plotting import plot_result
+    from .core import estimate_wavefront, load_instrument
+    from .pair_figure import plot_estimate_truth_design
+    from .provenance import assess
     from .sim.render import render_donut, true_zernikes_nm
     from .sim.telescope import perturbed_telescope
 
@@ -370,8 +405,8 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
     field = tuple(args.field)
     tel = perturbed_telescope(dof, band="r")
     truth = true_zernikes_nm(tel, field, wavelength_nm=622.0)
-    print(f"perturbation: M2 {np.round(dof[:5], 3).tolist()}, camera "
-          f"{np.round(dof[5:10], 3).tolist()}; wavefront {np.sqrt(np.sum(truth**2)):.0f} nm")
+    print(f"perturbation: {format_hexapods(dof)}; wavefront "
+          f"{np.sqrt(np.sum(truth**2)):.0f} nm (sqrt of the sum of Z4..Z22 squared)")
     print(f"ray-tracing intra and extra donuts ({args.photons:g} photons each) ...", flush=True)
     intra, extra = (render_donut(tel, field, dz, wavelength_nm=622.0, npix=160,
                                  n_photons=args.photons, sky_per_pixel=50.0,
@@ -379,16 +414,28 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
     result = estimate_wavefront(intra, extra, field_intra_deg=field, field_extra_deg=field,
                                 solver=args.solver)
     print(format_result(result))
+    print(format_checks(assess(result, load_instrument("lsst"), 1.5)))
     err = result.zernikes_nm - truth
     print(f"{'Noll':>4}  {'estimate':>9}  {'truth':>9}  {'error':>7}   (nm)")
     for j, e, t, d in zip(result.noll, result.zernikes_nm, truth, err, strict=True):
         print(f"{int(j):>4}  {e:>9.1f}  {t:>9.1f}  {d:>7.1f}")
     print(f"RMS error {np.sqrt(np.mean(err**2)):.1f} nm over Z4-Z22")
-    png = plot_result(result, args.out / "demo_estimate.png", intra=intra, extra=extra,
-                      title="ray-traced LSST pair (batoid), estimate vs truth")
+    png = plot_estimate_truth_design(
+        result, truth, args.out / "demo_estimate.png", intra=intra, extra=extra,
+        title=f"ray-traced, perturbed LSST pair (batoid) at field ({field[0]:g}, "
+              f"{field[1]:g}) deg, {args.photons:g} photons per donut\n{format_hexapods(dof)}")
     np.savez(args.out / "demo_pair.npz", intra=intra, extra=extra, truth_nm=truth, dof=dof)
     print(f"report: {png.resolve()}")
     return 0
+
+
+def format_hexapods(dof: Any) -> str:
+    """The M2 and camera hexapod DoF (0-9 of the 50) with their units."""
+    def one(v: Any) -> str:
+        return (f"dz {v[0]:+.2f} um, dx {v[1]:+.1f} um, dy {v[2]:+.1f} um, "
+                f"rx {v[3]:+.4f} deg, ry {v[4]:+.4f} deg")
+
+    return f"M2 {one(dof[:5])}; camera {one(dof[5:10])}"
 
 
 def _register_ros_subcommands() -> None:
@@ -429,6 +476,29 @@ def _register_validate_subcommand() -> None:
 _register_validate_subcommand()
 
 
+def _register_rostools_subcommands() -> None:
+    # topic list|echo|hz and param list|get|set|dump (`node list` is on the node parser).
+    from .rostools import add_param_parser, add_topic_parser
+
+    subcommand(add_topic_parser)
+    subcommand(add_param_parser)
+
+
+_register_rostools_subcommands()
+
+
+def _register_batch_subcommand() -> None:
+    from functools import partial
+
+    from .batch import add_batch_parser
+
+    subcommand(partial(add_batch_parser, cli_error=CliError, solver_help=SOLVER_HELP,
+                       epilog=exit_codes_epilog()))
+
+
+_register_batch_subcommand()
+
+
 def format_result(result: Any) -> str:
     """Human-readable table of Z4..Z22 plus a status line."""
     lines = [
@@ -439,12 +509,20 @@ def format_result(result: Any) -> str:
     ]
     for j, z, d in zip(result.noll, result.zernikes_nm, result.intrinsic_nm, strict=True):
         lines.append(f"{int(j):>4}  {z:>10.2f}  {d:>11.2f}")
+    # "settled": the last update fell below the solver's tolerance. It is not a verdict on
+    # accuracy (an unsettled estimate ran out of iterations while still moving slightly).
     lines.append(
         f"caustic: {'yes' if result.caustic else 'no'}, "
-        f"converged: {'yes' if result.converged else 'no'}, "
-        f"iterations: {result.iterations}, wall time: {result.wall_time_s:.3f} s"
+        f"settled: {'yes' if result.converged else 'no'}, "
+        f"iterations: {result.iterations}, swap check: {result.swap_check}, "
+        f"wall time: {result.wall_time_s:.3f} s"
     )
     return "\n".join(lines)
+
+
+def format_checks(checks: Sequence[Any]) -> str:
+    """One line per check of :func:`cwfs_ros.provenance.assess`."""
+    return "\n".join(f"check {c.name}: {c.outcome} ({c.detail})" for c in checks)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cwfs_ros.params import check_declared
+from cwfs_ros.params import check_declared, check_overrides
 from cwfs_ros.paths import config_dir
 
 __all__ = [
@@ -205,10 +205,11 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 print(f"cwfs-ros: error: {name} could not start: {type(exc).__name__}: {exc}",
                       file=sys.stderr)
                 return 2
-        problems = [msg for n in nodes
-                    for msg in check_declared(files, n.get_name(), declared_kinds(n))]
+        kinds = {n.get_name(): declared_kinds(n) for n in nodes}
+        problems = [msg for n, k in kinds.items() for msg in check_declared(files, n, k)]
+        problems += check_overrides(argv, kinds)
         if problems:
-            print("cwfs-ros: error: parameter file problems; not running:\n  "
+            print("cwfs-ros: error: parameter problems; not running:\n  "
                   + "\n  ".join(problems), file=sys.stderr)
             return 2
         executor = MultiThreadedExecutor(num_threads=threads or max(4, os.cpu_count() or 1),
@@ -283,14 +284,30 @@ def sim_params_file() -> Path:
     return config_dir() / "sim.yaml"
 
 
+# rcl's discovery range; read when the context is initialised.
+DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+SIM_DISCOVERY_RANGE = "LOCALHOST"
+
+
 def cmd_bringup(args: argparse.Namespace) -> int:
     names = list(BRINGUP_NODES) + ([SIM_NODE] if args.sim else [])
     files = ([sim_params_file()] if args.sim else []) + list(args.params)
+    if args.sim and not args.visible:
+        # A simulated loop must never reach real actuators: its corrections stay on this
+        # host (where `cwfs-ros topic echo` still sees them), never on the network.
+        os.environ[DISCOVERY_ENV] = SIM_DISCOVERY_RANGE
+        print(f"cwfs-ros bringup: --sim: DDS discovery limited to this host "
+              f"({DISCOVERY_ENV}={SIM_DISCOVERY_RANGE}; --visible to open it)",
+              file=sys.stderr, flush=True)
     return run_nodes(names, params_files=files, ros_args=args.ros_args or [],
                      threads=args.threads)
 
 
 def cmd_node(args: argparse.Namespace) -> int:
+    if args.name == "list":  # `node list`, as `ros2 node list`
+        from .rostools import node_list
+
+        return node_list(args.all, args.spin_time)
     return run_nodes([args.name], params_files=args.params, ros_args=args.ros_args or [],
                      threads=args.threads)
 
@@ -305,6 +322,10 @@ def add_bringup_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--sim", action="store_true",
                    help="also run camera_sim_node (cwfs_ros.nodes.camera_sim_node), with "
                         "config/sim.yaml over config/params.yaml")
+    p.add_argument("--visible", action="store_true",
+                   help="with --sim: let other hosts on the DDS domain discover the graph "
+                        "(by default a simulated loop is kept to this host, so that its "
+                        "corrections never reach a real telescope's actuators)")
     _add_common(p)
     p.set_defaults(func=cmd_bringup)
     return p
@@ -312,10 +333,16 @@ def add_bringup_parser(subparsers) -> argparse.ArgumentParser:
 
 def add_node_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``node NAME`` on an argparse subparsers object (sets ``func``)."""
-    p = subparsers.add_parser("node", help="run one cwfs_ros node",
-                              description="Run one node (like `ros2 run cwfs_ros NAME`).")
-    p.add_argument("name", choices=sorted(NODES), help="node to run")
+    from .rostools import add_node_list_arguments
+
+    p = subparsers.add_parser(
+        "node", help="run one cwfs_ros node, or list the running nodes (node list)",
+        description="Run one node (like `ros2 run cwfs_ros NAME`), or list the nodes of the "
+                    "running graph (`node list`, like `ros2 node list`).")
+    p.add_argument("name", choices=[*sorted(NODES), "list"],
+                   help="node to run, or `list`")
     _add_common(p)
+    add_node_list_arguments(p)
     p.set_defaults(func=cmd_node)
     return p
 

@@ -6,16 +6,19 @@ when two layered files give the same parameter values of different types, the la
 dropped silently (``kp: "fast"`` over config/params.yaml leaves kp at 0.18). The entry points
 therefore read every file themselves first (:func:`read_params_file`) and, once the nodes
 have declared their parameters, refuse unknown names and wrong types
-(:func:`check_declared`), naming the file and the key.
+(:func:`check_declared`), naming the file and the key.  The command line's
+``--ros-args -p NAME:=VALUE`` overrides are held to the same rules
+(:func:`check_overrides`), and an unknown name is given its close match.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ParamsFileError", "check_declared", "flatten", "read_params_file", "yaml_kind"]
+__all__ = ["ParamsFileError", "check_declared", "check_overrides", "close_match", "flatten",
+           "read_params_file", "yaml_kind"]
 
 
 class ParamsFileError(ValueError):
@@ -103,10 +106,65 @@ def check_declared(files: list[Path], node: str, declared: Mapping[str, str]) ->
                 if name not in declared:
                     if key.lstrip("/") == node:  # a wildcard section may hold other nodes'
                         problems.append(f"{f}: {node}.{name}: {node} declares no such "
-                                        "parameter (misspelt? it would be ignored)")
+                                        "parameter (misspelt? it would be ignored)"
+                                        + close_match(name, declared))
                     continue
                 given = yaml_kind(value)
                 if not _compatible(given, declared[name]):
                     problems.append(f"{f}: {node}.{name}: {value!r} is a {given}, the "
                                     f"parameter is a {declared[name]}")
+    return problems
+
+
+def close_match(name: str, declared: Iterable[str]) -> str:
+    """``"; did you mean 'dry_run'?"`` for the nearest declared name, or ``""``."""
+    import difflib
+
+    near = difflib.get_close_matches(name, list(declared), n=1, cutoff=0.6)
+    return f"; did you mean {near[0]!r}?" if near else ""
+
+
+def _overrides(ros_args: Sequence[str]) -> list[tuple[str | None, str, str]]:
+    """``(node or None, name, value text)`` of every ``-p``/``--param`` of an rcl command
+    line (``NAME:=VALUE``, or ``NODE:NAME:=VALUE`` for one node)."""
+    out = []
+    for flag, rule in zip(ros_args, ros_args[1:], strict=False):
+        if flag not in ("-p", "--param") or ":=" not in rule:
+            continue
+        lhs, _, value = rule.partition(":=")
+        node, _, name = lhs.rpartition(":")
+        out.append((node.lstrip("/") or None, name, value))
+    return out
+
+
+def check_overrides(ros_args: Sequence[str], declared: Mapping[str, Mapping[str, str]]
+                    ) -> list[str]:
+    """Problems of the ``-p NAME:=VALUE`` overrides of ``ros_args`` for the nodes of
+    ``declared`` (node -> name -> kind): a name no node declares (rcl would ignore it) and
+    a value of another type than the parameter's, one line each.  A name without a node
+    prefix reaches every node, so it must be declared by at least one."""
+    import yaml
+
+    problems = []
+    for node, name, text in _overrides(ros_args):
+        targets = {n: d for n, d in declared.items() if node is None or n == node}
+        if node is not None and not targets:
+            problems.append(f"-p {node}:{name}:={text}: no node {node} here (running: "
+                            f"{', '.join(sorted(declared))})")
+            continue
+        holders = {n: d[name] for n, d in targets.items() if name in d}
+        if not holders:
+            known = {k for d in targets.values() for k in d}
+            problems.append(f"-p {name}:={text}: {' or '.join(sorted(targets))} declares no "
+                            "such parameter (misspelt? it would be ignored)"
+                            + close_match(name, known))
+            continue
+        try:
+            given = yaml_kind(yaml.safe_load(text))
+        except yaml.YAMLError:
+            given = "string"
+        for n, kind in sorted(holders.items()):
+            if not _compatible(given, kind):
+                problems.append(f"-p {name}:={text}: {n}.{name} is a {kind}, {text!r} is "
+                                f"a {given}")
     return problems

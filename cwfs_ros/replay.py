@@ -57,6 +57,8 @@ __all__ = [
     "add_replay_parser",
     "image_topic",
     "node_parameters",
+    "params_overlay",
+    "parse_remaps",
     "replay",
 ]
 
@@ -425,12 +427,14 @@ def _compare(corners: list[CornerRow], dofs: list[DofRow], live_corners: dict[tu
 
 
 def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[str | Path] = (),
-           progress: bool = True, plots: bool = True, sim: bool | None = None) -> ReplayResult:
+           progress: bool = True, plots: bool = True, sim: bool | None = None,
+           remap: dict[str, str] | None = None) -> ReplayResult:
     """Run the estimator and the OFC solver offline on every visit of a bag; write the outputs.
 
     ``sim``: layer config/sim.yaml under the ``params_files``, as ``bringup --sim`` does;
     ``None`` (default) decides from the bag: a bag holding ``/aos/sim/truth`` was recorded from
-    the simulated loop.
+    the simulated loop.  ``remap``: bag topic -> the node's topic (``--remap FROM:=TO``), for a
+    bag whose topics a camera driver named otherwise.
 
     Raises :class:`~cwfs_ros.bag.BagError` for a bad bag (or one without image topics) and
     :class:`~cwfs_ros.core.errors.ConfigError` for bad parameters.
@@ -448,8 +452,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
     ofc = node_parameters("ofc_node", params_files)
     out = Path(out_dir)
     with open_bag(bag_path) as bag:
-        images = {image_topic(c, s): (c, s) for c in _CORNERS for s in _SIDES
-                  if image_topic(c, s) in bag.topics}
+        bag_name = _bag_names(remap or {}, bag.topics)
+        images = {bag_name(image_topic(c, s)): (c, s) for c in _CORNERS for s in _SIDES
+                  if bag_name(image_topic(c, s)) in bag.topics}
         if not images:
             raise BagError(f"{bag.path}: no image topics (/aos/wfs/<corner>/<intra|extra>/image)"
                            " in the bag: nothing to replay")
@@ -459,16 +464,19 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
         bag.require_decodable(images)
         notes = ([f"{sim_params_file().name} applied under the --params files (the bag holds "
                   f"{SIM_TRUTH_TOPIC}: a simulated run, as bringup --sim)"] if sim else [])
-        live = {corner_topic(c): c for c in _CORNERS if corner_topic(c) in bag.topics}
+        live = {bag_name(corner_topic(c)): c for c in _CORNERS
+                if bag_name(corner_topic(c)) in bag.topics}
         for t in list(live):
             if bag.topics[t].type != CORNER_TYPE or bag.decode_problem(t):
                 notes.append(f"{t} ({bag.topics[t].type}) not compared: "
                              f"{bag.decode_problem(t) or 'not a ' + CORNER_TYPE}")
                 del live[t]
-        has_dof = DOF_TOPIC in bag.topics
-        if has_dof and (bag.topics[DOF_TOPIC].type != DOF_TYPE or bag.decode_problem(DOF_TOPIC)):
-            notes.append(f"{DOF_TOPIC} not compared: "
-                         f"{bag.decode_problem(DOF_TOPIC) or 'not a ' + DOF_TYPE}")
+        dof_topic = bag_name(DOF_TOPIC)
+        has_dof = dof_topic in bag.topics
+        if has_dof and (bag.topics[dof_topic].type != DOF_TYPE
+                        or bag.decode_problem(dof_topic)):
+            notes.append(f"{dof_topic} not compared: "
+                         f"{bag.decode_problem(dof_topic) or 'not a ' + DOF_TYPE}")
             has_dof = False
         n_images = sum(bag.topics[t].count for t in images)
 
@@ -480,9 +488,10 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
         pipe = _Pipeline(wf, ofc)
         live_corners: dict[tuple, Any] = {}
         live_dofs: dict[int, Any] = {}
-        joints = [JOINT_TOPIC] if (JOINT_TOPIC in bag.topics and bag.topics[
-            JOINT_TOPIC].type == JOINT_TYPE and not bag.decode_problem(JOINT_TOPIC)) else []
-        topics = [*images, *live, *([DOF_TOPIC] if has_dof else []), *joints]
+        joint_topic = bag_name(JOINT_TOPIC)
+        joints = [joint_topic] if (joint_topic in bag.topics and bag.topics[
+            joint_topic].type == JOINT_TYPE and not bag.decode_problem(joint_topic)) else []
+        topics = [*images, *live, *([dof_topic] if has_dof else []), *joints]
         # One BLAS/OpenMP thread, as in the node's worker processes (corner_pool._worker_init):
         # the sums then run in the same order and the estimates agree with the live ones to
         # the last bit (with two threads they differed by up to 1e-4 nm). The limit only
@@ -499,7 +508,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
                 if m.topic in images:
                     pipe.image(msg, *images[m.topic], m.timestamp_ns / 1e9)
                     bar.update(1)
-                elif m.topic == JOINT_TOPIC:
+                elif m.topic in joints:
                     pipe.joints(msg)
                 elif m.topic in live:
                     live_corners[(str(msg.corner) or live[m.topic],
@@ -523,6 +532,21 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
                           files, wf, ofc, pipe.rejections)
     _write_summary(files["summary"], result)
     return result
+
+
+def _bag_names(remap: dict[str, str], bag_topics: Any) -> Any:
+    """node topic -> the bag's name for it, from ``FROM:=TO`` remappings (bag -> node)."""
+    from .bag import BagError
+
+    inverse: dict[str, str] = {}
+    for src, dst in remap.items():
+        if src not in bag_topics:
+            raise BagError(f"--remap {src}:={dst}: the bag has no topic {src} (it has: "
+                           f"{', '.join(sorted(bag_topics)) or 'none'})")
+        if dst in inverse:
+            raise BagError(f"--remap: {inverse[dst]} and {src} both map to {dst}")
+        inverse[dst] = src
+    return lambda topic: inverse.get(topic, topic)
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -673,14 +697,66 @@ def _plot_dofs(path: Path, rows: list[DofRow]) -> Path:
 
 
 # ----------------------------------------------------------------------------- command line
+def _abs_topic(name: str) -> str:
+    return name if name.startswith("/") else "/" + name
+
+
+def parse_remaps(rules: Sequence[str]) -> dict[str, str]:
+    """``FROM:=TO`` rules (as ``--ros-args -r``) to {bag topic: node topic}."""
+    from .core.errors import ConfigError
+
+    out: dict[str, str] = {}
+    for rule in rules:
+        src, sep, dst = rule.partition(":=")
+        if not sep or not src.strip() or not dst.strip():
+            raise ConfigError(f"--remap {rule!r}: expected FROM:=TO, e.g. "
+                              "/camera/wfs_r00_sw1/image_raw:=/aos/wfs/R00/intra/image")
+        out[_abs_topic(src.strip())] = _abs_topic(dst.strip())
+    return out
+
+
+def params_overlay(rules: Sequence[str], params_files: Sequence[str | Path],
+                   out_dir: Path) -> Path | None:
+    """``-p NAME:=VALUE`` rules as a parameter file for the node that declares NAME
+    (wavefront_node's ``sensors.<corner>.<side>.rot90/flip``, ofc_node's ``kp`` ...),
+    checked like ``--ros-args -p`` (:func:`cwfs_ros.params.check_overrides`)."""
+    import yaml
+
+    from .core.errors import ConfigError
+    from .params import check_overrides, yaml_kind
+
+    if not rules:
+        return None
+    declared = {n: {k: yaml_kind(v) for k, v in node_parameters(n, params_files).items()}
+                for n in ("wavefront_node", "ofc_node")}
+    argv = [a for r in rules for a in ("-p", r)]
+    problems = check_overrides(argv, declared)
+    if problems:
+        raise ConfigError("; ".join(problems))
+    body: dict[str, dict[str, Any]] = {}
+    for rule in rules:
+        name, _, text = rule.partition(":=")
+        node = next(n for n, d in declared.items() if name in d)
+        body.setdefault(node, {"ros__parameters": {}})["ros__parameters"][name] = (
+            yaml.safe_load(text))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "params_overrides.yaml"
+    path.write_text(yaml.safe_dump(body, sort_keys=False))
+    return path
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from .bag import BagError, _cli_error
+    from .core.errors import ConfigError
 
     try:
-        result = replay(args.bag, args.out, params_files=args.params,
+        remap = parse_remaps(args.remap)
+        overlay = params_overlay(args.param, args.params, Path(args.out))
+        result = replay(args.bag, args.out, params_files=[*args.params,
+                                                          *([overlay] if overlay else [])],
                         progress=not args.no_progress, plots=not args.no_plots,
-                        sim={"auto": None, "yes": True, "no": False}[args.sim])
-    except BagError as exc:
+                        sim={"auto": None, "yes": True, "no": False}[args.sim], remap=remap)
+    except (BagError, ConfigError) as exc:
         raise _cli_error(args, exc) from None
     print(result.format())
     return 0
@@ -708,6 +784,14 @@ def add_replay_parser(subparsers: Any, cli_error: type[Exception] | None = None
     p.add_argument("--sim", choices=("auto", "yes", "no"), default="auto",
                    help="layer config/sim.yaml under the --params files, as bringup --sim "
                         "does; auto: when the bag holds /aos/sim/truth (default)")
+    p.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
+                   help="read the bag's topic FROM as the node's TO (repeatable), e.g. "
+                        "/cam/r00_sw1/image_raw:=/aos/wfs/R00/intra/image")
+    p.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                   help="a wavefront_node or ofc_node parameter over the --params files "
+                        "(repeatable), e.g. the orientation of a camera's stamps: "
+                        "sensors.R00.intra.rot90:=2, sensors.R00.intra.flip:=lr "
+                        "(docs/connecting-a-camera.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-plots", action="store_true", help="write the CSV files only")
     p.set_defaults(func=cmd_replay, cli_error=cli_error)

@@ -51,7 +51,8 @@ def test_json_output_known_z7(text_result: tuple[dict, Path]) -> None:
     assert 180.0 < out["zernikes_nm"][3] < 200.0  # Z7: the injected 0.25 wave
     others = np.delete(np.asarray(out["zernikes_nm"]), 3)
     assert np.abs(others).max() < 20.0
-    assert out["instrument"] == "paraxial" and out["solver"] == "exp"
+    # lsq is the default solver of the CLI (exp, the paper's, stays selectable).
+    assert out["instrument"] == "paraxial" and out["solver"] == "lsq"
     assert not out["caustic"] and out["iterations"] >= 1
 
 
@@ -173,6 +174,10 @@ def test_pair_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
     assert png.stat().st_size > 10_000
     saved = np.load(tmp_path / "demo_pair.npz")
     assert saved["intra"].shape == (160, 160) and saved["truth_nm"].shape == (19,)
+    # The perturbation with its units; lsq, the default solver.
+    pert = next(ln for ln in proc.stdout.splitlines() if ln.startswith("perturbation:"))
+    assert pert.count(" um,") == 6 and pert.count(" deg") == 4, pert
+    assert "solver lsq" in proc.stdout
     rms_line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("RMS error"))
     # Several hundred nm of wavefront, recovered to tens of nm at this photon count.
     assert float(rms_line.split()[2]) < 40.0

@@ -556,7 +556,11 @@ class WavefrontResult:
             from design.
         noll: the Noll indices of ``zernikes_nm`` (4..22).
         caustic: the compensation folded into caustic; the estimate is the last good one.
-        converged: the residual fell below tolerance before the iteration limit.
+        converged: the iteration settled: the last update (rms of the residual over
+            Z4..Z_jmax) fell below the solver's ``tolerance_nm`` before the iteration limit.
+            It says the outer loop stopped moving, not that the estimate is accurate:
+            False only means the limit of iterations was reached first (read
+            ``residual_rms_nm[-1]`` for the size of the last update).
         iterations: outer iterations run.
         history_nm: estimate Z1..Z_jmax after each outer iteration, shape (iterations, jmax).
         residual_rms_nm: rms of each iteration's residual over Z4..Z_jmax.
@@ -596,6 +600,18 @@ class WavefrontResult:
     # wavefront is added back; Z1-Z3 zero): what ``initial_nm`` of another pair takes.
     departure_all_nm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
+    def __repr__(self) -> str:
+        # One line; the arrays are in the attributes (the dataclass repr was ~6000 chars).
+        dep = self.zernikes_nm - self.intrinsic_nm
+        flags = [n for n, on in (("caustic", self.caustic), ("not settled", not self.converged))
+                 if on]
+        return (f"<WavefrontResult {self.instrument} {self.band} {self.wavelength_nm:g} nm, "
+                f"{self.solver}, field ({self.field_deg[0]:.4f}, {self.field_deg[1]:.4f}) deg:"
+                f" Z4..Z22 {np.sqrt(np.sum(self.zernikes_nm ** 2)):.1f} nm "
+                f"(departure from design {np.sqrt(np.sum(dep ** 2)):.1f} nm, Z4 "
+                f"{self.zernikes_nm[0]:.1f} nm), {self.iterations} iterations, swap_check "
+                f"{self.swap_check}{''.join(', ' + f for f in flags)}>")
+
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly summary."""
         return {
@@ -603,8 +619,9 @@ class WavefrontResult:
             "zernikes_nm": [round(float(v), 4) for v in self.zernikes_nm],
             "intrinsic_nm": [round(float(v), 4) for v in self.intrinsic_nm],
             "caustic": bool(self.caustic),
-            "converged": bool(self.converged),
+            "converged": bool(self.converged),  # settled: last update below tolerance_nm
             "iterations": int(self.iterations),
+            "swap_check": self.swap_check,
             "field_deg": [float(v) for v in self.field_deg],
             "solver": self.solver,
             "instrument": self.instrument,
@@ -636,7 +653,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
                        field_extra_deg: tuple[float, float],
                        instrument: str | Instrument = "lsst", band: str = "r",
                        wavelength_nm: float | None = None,
-                       defocal_offset_mm: float | None = None, solver: str = "exp",
+                       defocal_offset_mm: float | None = None, solver: str = "lsq",
                        saturation_level: float | None = None,
                        initial_nm: np.ndarray | None = None,
                        seeing_fwhm_arcsec: float = 0.0,
@@ -652,7 +669,9 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         band: optical band of the model (u, g, r, i, z, y); selects the batoid optic.
         wavelength_nm: wavelength; defaults to the band's effective wavelength.
         defocal_offset_mm: |detector offset|; defaults to the instrument's.
-        solver: ``"exp"`` (series expansion), ``"fft"`` (iterative FFT) or ``"lsq"``.
+        solver: ``"lsq"`` (least squares, the default: the smallest error in every measured
+            case, README, Accuracy), or the paper's ``"exp"`` (series expansion) and
+            ``"fft"`` (iterative FFT), kept to reproduce its figures.
         saturation_level: pixel value (input units) at which the detector saturates;
             defaults to the instrument's ``saturation_level`` (None: unknown, and only the
             plateau test of :mod:`.checks` detects saturation).
@@ -692,6 +711,8 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     seeing_fwhm_arcsec = check_seeing(seeing_fwhm_arcsec)
     fi = _field(field_intra_deg, "field_intra_deg")
     fe = _field(field_extra_deg, "field_extra_deg")
+    inst.check_field(fi, "field_intra_deg")
+    inst.check_field(fe, "field_extra_deg")
     defocus = inst.defocal_offset_mm if defocal_offset_mm is None else float(defocal_offset_mm)
     if not (np.isfinite(defocus) and 0 < defocus < 100):
         raise ConfigError(f"defocal_offset_mm must be in (0, 100), got {defocal_offset_mm!r}")

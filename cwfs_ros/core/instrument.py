@@ -47,6 +47,8 @@ class Instrument:
         band_wavelength_nm: effective wavelength per band.
         saturation_level: pixel value of the stamps as given to the estimator (e.g. e- or
             ADU) at or above which the detector saturates; None (null) when unknown.
+        field_radius_deg: radius of the field of view: a star farther from the axis is
+            refused (:meth:`check_field`) as a wrong input, not estimated.
     """
 
     name: str
@@ -63,6 +65,7 @@ class Instrument:
     band_wavelength_nm: dict[str, float] = field(default_factory=dict)
     description: str = ""
     saturation_level: float | None = None
+    field_radius_deg: float = 5.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -85,6 +88,9 @@ class Instrument:
         if sat is not None and (isinstance(sat, bool) or not isinstance(sat, (int, float))
                                 or not np.isfinite(sat)):
             problems.append(f"saturation_level must be a number or null, got {sat!r}")
+        r = self.field_radius_deg
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 < r <= 5.0:
+            problems.append(f"field_radius_deg must be in (0, 5], got {r!r}")
         if not isinstance(self.band_wavelength_nm, dict) or not all(
             isinstance(v, (int, float)) and v > 0 for v in self.band_wavelength_nm.values()
         ):
@@ -110,6 +116,15 @@ class Instrument:
         """Paraxial radius of a defocused pupil image, l R / f, in pixels (paper §3.2)."""
         l_m = (defocal_offset_mm or self.defocal_offset_mm) * 1e-3
         return l_m * self.pupil_radius_m / self.focal_length_m / (self.pixel_size_um * 1e-6)
+
+    def check_field(self, field_deg: tuple[float, float], what: str = "field") -> None:
+        """Refuse a field (x, y) in degrees beyond :attr:`field_radius_deg` (ConfigError)."""
+        r = float(np.hypot(*field_deg))
+        if r > self.field_radius_deg:
+            raise ConfigError(
+                f"{what} ({field_deg[0]:g}, {field_deg[1]:g}) deg is {r:.3f} deg off axis, "
+                f"outside the field of view of {self.name} ({self.field_radius_deg:g} deg "
+                "radius, field_radius_deg of its instrument file)")
 
     def wavelength_nm(self, band: str | None, wavelength_nm: float | None = None) -> float:
         """The wavelength to use: the caller's, else the band's effective wavelength."""

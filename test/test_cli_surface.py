@@ -1,0 +1,215 @@
+"""The command line's defaults, exit codes, refusals, provenance and batch mode.
+
+Each exit code is produced by the real command (a subprocess, as a user runs it) on the
+bundled ZEMAX pairs: the F1.23 paraxial pair (0.25 wave of Z7 injected: Z7 near 190 nm)
+and the FAM pairs of the LSST design at 1.5 mm.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from test_cli import EXTRA, GEOMETRY, INTRA, ROOT, run_cli
+
+from cwfs_ros.core.io import read_image
+
+FAM = ROOT / "test" / "data" / "zemax" / "FAM"
+FAM_ARGS = ["--band", "g", "--wavelength", "500"]  # as the README's FAM runs
+R22 = [FAM / "Image_intra_R22_S11.txt", FAM / "Image_extra_R22_S11.txt"]
+R34 = [FAM / "Image_intra_R34_S12.txt", FAM / "Image_extra_R34_S12.txt"]
+EXIT_FLAGGED = 3
+
+
+def test_help_documents_every_exit_code():
+    for argv in (["--help"], ["estimate", "--help"], ["batch", "--help"]):
+        proc = run_cli(*argv)
+        assert proc.returncode == 0
+        text = proc.stdout
+        assert "exit status:" in text, argv
+        for code in ("0", "1", "2", "3", "130"):
+            assert any(line.split()[:1] == [code] for line in text.splitlines()), (argv, code)
+
+
+def test_lsq_is_the_default_solver_and_exp_fft_stay_selectable():
+    proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--json")
+    out = json.loads(proc.stdout)
+    assert proc.returncode == 0 and out["solver"] == "lsq"
+    assert 180.0 < out["zernikes_nm"][3] < 200.0  # the injected Z7
+    for solver in ("exp", "fft"):
+        proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--json", "--solver", solver)
+        assert proc.returncode == 0 and json.loads(proc.stdout)["solver"] == solver
+    import inspect
+
+    from cwfs_ros.core import estimate_wavefront
+
+    assert inspect.signature(estimate_wavefront).parameters["solver"].default == "lsq"
+
+
+def test_result_repr_is_a_short_summary():
+    from cwfs_ros.core import estimate_wavefront
+
+    r = estimate_wavefront(read_image(INTRA), read_image(EXTRA), field_intra_deg=(0, 0),
+                           field_extra_deg=(0, 0), instrument="paraxial",
+                           defocal_offset_mm=1.0)
+    text = repr(r)
+    assert len(text) < 400 and "\n" not in text, text
+    assert text.startswith("<WavefrontResult paraxial r 622 nm, lsq, field (0.0000, 0.0000)")
+    assert f"Z4 {r.zernikes_nm[0]:.1f} nm" in text and "iterations" in text
+
+
+def test_text_output_says_settled_and_swap_check():
+    proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY)
+    assert proc.returncode == 0
+    assert "converged" not in proc.stdout
+    status = next(ln for ln in proc.stdout.splitlines() if ln.startswith("caustic:"))
+    assert "settled: " in status and "swap check: off" in status
+    assert "check plausible: pass" in proc.stdout and "check caustic: pass" in proc.stdout
+
+
+def test_field_outside_the_field_of_view_is_refused():
+    proc = run_cli("estimate", INTRA, EXTRA, "--instrument", "lsst", "--field-intra", "2.0",
+                   "1.5", "--field-extra", "2.0", "1.5")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "2.500 deg off axis, outside the field of view of lsst (2.1 deg" in proc.stderr
+
+
+def test_lsst_admits_every_corner_sensor_and_the_fam_set():
+    from cwfs_ros.core import load_instrument
+
+    inst = load_instrument("lsst")
+    corners = yaml.safe_load((ROOT / "config" / "sensors" / "lsst_corners.yaml").read_text())
+    for c in corners["corners"].values():
+        for side in ("intra", "extra"):
+            inst.check_field(tuple(c[side]["field_deg"]))
+    inst.check_field((0.706, 1.646))  # FAM R34_S12, 1.79 deg
+    # The farthest pixel of a science raft: 1.5 and 2.5 raft pitches of 0.7056 deg.
+    inst.check_field((1.5 * 0.7056, 2.5 * 0.7056))
+
+
+def test_an_implausible_estimate_exits_3_and_prints_nothing():
+    """FAM R34_S12 given a wrong field (its true one is (0.706, 1.646))."""
+    wrong = ["--field-intra", "1.411", "-1.411", "--field-extra", "1.411", "-1.411"]
+    proc = run_cli("estimate", *R34, *FAM_ARGS, *wrong)
+    assert proc.returncode == EXIT_FLAGGED and proc.stdout == ""
+    assert "flagged: plausible: largest departure from design" in proc.stderr
+    assert "--allow-flagged" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("estimate", *R34, *FAM_ARGS, *wrong, "--allow-flagged", "--json")
+    out = json.loads(proc.stdout)
+    assert proc.returncode == 0 and "plausible" in out["flags"]
+    assert {c["name"]: c["outcome"] for c in out["checks"]}["plausible"] == "fail"
+
+
+def test_a_caustic_estimate_exits_3():
+    """The 1.5 mm FAM pair told 1.0 mm: the compensation folds."""
+    proc = run_cli("estimate", *R22, *FAM_ARGS, "--field-intra", "0", "0", "--field-extra",
+                   "0", "0", "--defocal-offset", "1.0")
+    assert proc.returncode == EXIT_FLAGGED and proc.stdout == ""
+    assert "flagged: caustic" in proc.stderr
+
+
+@pytest.mark.parametrize("content, reason", [
+    (b"\x89PNG\r\n\x1a\n" + bytes(64), "it is a PNG picture"),
+    (b"1 2 3\n\x00\x01\x02\n", "binary data"),
+    (b"one two\nthree four\n", "could not convert"),
+])
+def test_not_an_image_says_why(tmp_path: Path, content: bytes, reason: str):
+    bad = tmp_path / "donut.png"
+    bad.write_bytes(content)
+    proc = run_cli("estimate", bad, EXTRA, *GEOMETRY)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert f"intra image {bad}: not an image: " in proc.stderr and reason in proc.stderr
+    assert "codec" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_json_carries_the_provenance_and_every_check():
+    from cwfs_ros import __version__
+
+    proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--json")
+    out = json.loads(proc.stdout)
+    assert out["inputs"]["intra"]["path"] == str(INTRA)
+    assert out["inputs"]["extra"]["sha256"] == hashlib.sha256(EXTRA.read_bytes()).hexdigest()
+    assert (out["instrument"], out["band"], out["wavelength_nm"]) == ("paraxial", "r", 622.0)
+    assert out["defocal_offset_mm"] == 1.0 and out["solver"] == "lsq"
+    assert out["software"]["cwfs_ros"] == __version__ and "numpy" in out["software"]
+    assert out["field_sources"] == {"intra": "command line", "extra": "command line"}
+    checks = {c["name"]: c["outcome"] for c in out["checks"]}
+    assert checks == {"field_of_view": "pass", "image_checks": "pass", "swap_check": "off",
+                      "caustic": "pass", "plausible": "pass",
+                      "settled": "yes" if out["converged"] else "no"}
+    assert out["flags"] == [] and out["swap_check"] == "off"
+
+
+def _fits_pair(tmp_path: Path, defocus: tuple[float, float] = (-1.0, 1.0)) -> list[Path]:
+    from astropy.io import fits
+
+    out = []
+    for side, src, dz in (("intra", INTRA, defocus[0]), ("extra", EXTRA, defocus[1])):
+        hdu = fits.PrimaryHDU(read_image(src))
+        hdu.header["FIELD_X"], hdu.header["FIELD_Y"], hdu.header["DEFOCUS"] = 0.0, 0.0, dz
+        out.append(tmp_path / f"{side}.fits")
+        hdu.writeto(out[-1])
+    return out
+
+
+def test_fits_headers_give_the_field_and_defocus(tmp_path: Path):
+    pair = _fits_pair(tmp_path)
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["defocal_offset_mm"] == 1.0 and out["field_intra_deg"] == [0.0, 0.0]
+    assert out["field_sources"]["intra"] == "FITS header intra.fits"
+    ref = json.loads(run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--json").stdout)
+    np.testing.assert_allclose(out["zernikes_nm"], ref["zernikes_nm"], atol=1e-3)
+    # Without header or option: said, not guessed.
+    from astropy.io import fits
+
+    bare = tmp_path / "bare.fits"
+    fits.PrimaryHDU(read_image(INTRA)).writeto(bare)
+    proc = run_cli("estimate", bare, pair[1], "--instrument", "paraxial")
+    assert proc.returncode == 2 and "no field for the intra image" in proc.stderr
+
+
+def test_fits_defocus_of_the_wrong_sign_is_refused(tmp_path: Path):
+    pair = _fits_pair(tmp_path, defocus=(1.0, -1.0))
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial")
+    assert proc.returncode == 2 and "are intra and extra exchanged?" in proc.stderr
+
+
+def test_batch_writes_a_table_of_results(tmp_path: Path):
+    from astropy.table import Table
+
+    png = tmp_path / "x.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    table = tmp_path / "pairs.csv"
+    rows = [f"{INTRA},{EXTRA},0,0,0,0,1.0", f"{png},{EXTRA},0,0,0,0,1.0",
+            f"{INTRA},{EXTRA},0,0,0,0,0.5"]
+    table.write_text("intra,extra,field_intra_x,field_intra_y,field_extra_x,field_extra_y,"
+                     "defocal_offset_mm\n" + "\n".join(rows) + "\n")
+    for name in ("out.ecsv", "out.csv"):
+        proc = run_cli("batch", table, "--out", tmp_path / name, "--instrument", "paraxial",
+                       timeout=120)
+        assert proc.returncode == 2, proc.stderr  # one row is not an image
+        assert "3 pairs: 1 ok, 1 flagged, 1 errors" in proc.stdout
+        res = Table.read(tmp_path / name,
+                         format="ascii.ecsv" if name.endswith("ecsv") else "ascii.csv")
+        assert list(res["status"]) == ["ok", "error", "flagged"]
+        assert 180.0 < res["Z7_nm"][0] < 200.0
+        assert "not an image" in res["error"][1]
+        assert np.isnan(res["Z7_nm"][2]) and "caustic" in res["flags"][2]
+    assert str(res["solver"][0]) == "lsq"
+    ecsv = Table.read(tmp_path / "out.ecsv", format="ascii.ecsv")
+    assert str(ecsv["Z7_nm"].unit) == "nm" and "cwfs_ros" in ecsv.meta["software"]
+    # --allow-flagged: the flagged row's numbers are written, and it exits 0 for them.
+    table.write_text("intra,extra,field_intra_x,field_intra_y,field_extra_x,field_extra_y,"
+                     "defocal_offset_mm\n" + rows[2] + "\n")
+    proc = run_cli("batch", table, "--out", tmp_path / "f.ecsv", "--instrument", "paraxial")
+    assert proc.returncode == EXIT_FLAGGED
+    proc = run_cli("batch", table, "--out", tmp_path / "f.ecsv", "--instrument", "paraxial",
+                   "--allow-flagged")
+    res = Table.read(tmp_path / "f.ecsv", format="ascii.ecsv")
+    assert proc.returncode == 0 and np.isfinite(res["Z7_nm"][0])
