@@ -56,6 +56,9 @@ def test_fast_double_zernike_matches_galsims_object():
     fast = double_zernike_at(_dz_nm("ts_ofc"), fields).reshape(-1, C.N_DOF)
     np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
     assert model.at(0.0).H.shape == (C.N_MEAS, C.N_DOF)
+    at = model.at(35.0)  # the design at rotated corners, the same way
+    np.testing.assert_allclose(at.intrinsic_nm,
+                               C.intrinsic_vector_nm("r", at.corner_fields_deg), atol=1e-6)
 
 
 def test_decentres_are_corrected_with_every_dof(truth):

@@ -100,6 +100,18 @@ def _dz_nm(source: str) -> np.ndarray:
     return dz
 
 
+@lru_cache(maxsize=8)
+def _intrinsic_dz_nm(band: str) -> np.ndarray:
+    """(k, j, 1) double Zernike of the design wavefront of ``band`` in nm (ts_ofc's intrinsic
+    yaml, as :func:`cwfs_ros.core.control.intrinsic_zernikes_nm` reads it)."""
+    tag = "" if band == "ref" else band
+    path = C.ofc_config_dir() / C._INTRINSIC_DIR / f"intrinsic_zk_{tag}_31_29.yaml"  # noqa: SLF001
+    coef = C._yaml_array(path, 2) * C.band_wavelength_um(band) * 1000.0  # noqa: SLF001
+    out = np.ascontiguousarray(coef[:, :, None])
+    out.setflags(write=False)
+    return out
+
+
 def _bundled_dz_available() -> bool:
     return (C.ofc_config_dir() / BUNDLED_DZ_FILENAME).is_file()
 
@@ -158,7 +170,7 @@ class OpticalModel:
         zrot = rotation.zernike_rotation_matrix(theta)
         dofrot = rotation.dof_rotation_matrix(theta)
         H = self._corner_matrix(fields, angle_deg) @ dofrot
-        intr = C.intrinsic_vector_nm(self.band, fields)
+        intr = double_zernike_at(_intrinsic_dz_nm(self.band), fields).reshape(-1)
         F = self._F_tel @ dofrot
         arrays = [np.ascontiguousarray(a, dtype=np.float64)
                   for a in (fields, zrot, dofrot, H, intr, F)]
