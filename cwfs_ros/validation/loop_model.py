@@ -16,9 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cwfs_ros.core import control as C
-from cwfs_ros.ofc import rotation
 from cwfs_ros.ofc.field import field_rms_nm, gq_field_points_deg
-from cwfs_ros.sim.render import true_zernikes_nm
+from cwfs_ros.sim.render import camera_zernikes_nm, true_zernikes_nm
 from cwfs_ros.sim.telescope import perturbed_telescope
 
 __all__ = ["LoopTrace", "TruthModel", "run_model_loop"]
@@ -38,7 +37,6 @@ class TruthModel:
         self.corners_deg = C.corner_mid_field_points_deg()
         self.gq_deg = gq_field_points_deg()
         nominal = perturbed_telescope(np.zeros(C.N_DOF), band)
-        self._design_corners = self._zk(nominal, self.corners_deg)
         self._design_field = self._zk(nominal, self.gq_deg)
 
     def _zk(self, tel, fields: np.ndarray) -> np.ndarray:
@@ -50,24 +48,21 @@ class TruthModel:
                    ) -> tuple[np.ndarray, np.ndarray]:
         """(76,) camera-frame corner wavefront and (76,) its departure from the design [nm].
 
-        With the camera rotated by ``angle_deg``, the camera-frame Zernikes at ``f`` are the
-        unrotated telescope's (DoF ``M @ dof``) at the telescope field ``R f``, rotated back
-        (:mod:`cwfs_ros.ofc.rotation`; ``test/test_rotation.py`` checks it against batoid's
-        rotated camera to < 0.001 nm).
+        The camera is rotated in batoid itself (``perturbed_telescope(...,
+        rotator_angle_deg=)``, before the DoF as batoid_rubin's ``with_rtp``) and each corner
+        reads its camera-frame Zernikes (:func:`cwfs_ros.sim.render.camera_zernikes_nm`).
         """
-        th = np.deg2rad(angle_deg)
-        tel = perturbed_telescope(rotation.dof_rotation_matrix(th) @ dof, self.band)
-        fields = rotation.telescope_field_deg(self.corners_deg, th)
-        zr = rotation.zernike_rotation_matrix(th)
-        design = self._design_corners if angle_deg == 0 else self._zk(
-            perturbed_telescope(np.zeros(C.N_DOF), self.band), fields)
-        z_cam = self._zk(tel, fields) @ zr  # zr is orthogonal: z_cam = zr.T @ z_tel
-        return z_cam.reshape(-1), ((self._zk(tel, fields) - design) @ zr).reshape(-1)
+        tel = perturbed_telescope(dof, self.band, rotator_angle_deg=angle_deg)
+        nominal = perturbed_telescope(np.zeros(C.N_DOF), self.band, rotator_angle_deg=angle_deg)
+        z, z0 = (np.array([camera_zernikes_nm(t, (float(f[0]), float(f[1])), angle_deg,
+                                              wavelength_nm=self.wavelength_nm, nx=self.nx)
+                           for f in self.corners_deg]) for t in (tel, nominal))
+        return z.reshape(-1), (z - z0).reshape(-1)
 
     def field_error_nm(self, dof: np.ndarray, angle_deg: float = 0.0) -> float:
-        """True field-averaged wavefront error of a state [nm] (telescope frame)."""
-        th = np.deg2rad(angle_deg)
-        tel = perturbed_telescope(rotation.dof_rotation_matrix(th) @ dof, self.band)
+        """True field-averaged wavefront error of a state [nm] (telescope frame; the design
+        is rotationally symmetric, so the unrotated design serves every angle)."""
+        tel = perturbed_telescope(dof, self.band, rotator_angle_deg=angle_deg)
         return field_rms_nm(self._zk(tel, self.gq_deg) - self._design_field)
 
 
