@@ -43,7 +43,7 @@ def run(dof: np.ndarray, seed: int, a: argparse.Namespace,
     cfg = LoopConfig(visits=a.visits, initial_dof=dof, n_photons=a.photons, render_seed=seed,
                      params_files=[sim_params_file()], parameters=parameters or {},
                      ros_args=(*QUIET, "-p", f"seeing_fwhm_arcsec:={SEEING:g}"),
-                     rotator_angle_deg=angle, keep_images=())
+                     rotator_angle_deg=angle, keep_images=(), visit_timeout_s=900.0)
     with tempfile.TemporaryDirectory() as tmp:
         return run_closed_loop(cfg, workdir=tmp)
 
