@@ -171,8 +171,11 @@ class KalmanOFC(C.OFCSolver):
         nis = float(nu @ np.linalg.solve(S, nu)) / nu.size
         inflated = 1.0
         if nis > self.settings.nis_limit:
+            # Only the observed directions: the dropped ones learn nothing from this visit, so
+            # inflating them would let their variance grow without bound.
             inflated = nis / self.settings.nis_limit
-            P = P * inflated
+            Pk = obs.projector @ P @ obs.projector.T
+            P = P + (inflated - 1.0) * 0.5 * (Pk + Pk.T)
             S = H @ P @ H.T + cov
         K = obs.projector @ np.linalg.solve(S, H @ P).T
         ikh = np.eye(P.shape[0]) - K @ H
