@@ -277,7 +277,10 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
                 label="correction refused")
     ax.set_xlabel("visit")
     ax.set_ylabel("sqrt(sum Z4..Z22^2): corner mean, field GQ (nm)")
-    ax.set_title(f"(c) convergence: {true_e[0]:.0f} -> {true_e[-1]:.0f} nm", fontsize=10)
+    title = f"(c) convergence: corners {true_e[0]:.0f} -> {true_e[-1]:.0f} nm"
+    if np.all(np.isfinite(field_e)):
+        title += f", field {field_e[0]:.0f} -> {field_e[-1]:.0f} nm"
+    ax.set_title(title, fontsize=10)
     ax.set_xticks(v)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
@@ -302,6 +305,8 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
 
     fig.suptitle(
         f"cwfs_ros closed loop: camera_sim_node -> wavefront_node -> ofc_node, "
-        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut", fontsize=12)
+        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut"
+        + (f", camera rotator {getattr(run.config, 'rotator_angle_deg', 0.0):g} deg"
+           if getattr(run.config, "rotator_angle_deg", 0.0) else ""), fontsize=12)
     fig.savefig(path, format="png")
     return path
