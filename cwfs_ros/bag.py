@@ -90,6 +90,7 @@ DEFAULT_TOPICS: dict[str, str] = {
     "/aos/wfs/wavefront": "cwfs_msgs/msg/WavefrontVector",
     "/aos/ofc/dof_correction": "cwfs_msgs/msg/DofCorrection",
     "/aos/sim/truth": "cwfs_msgs/msg/SimTruth",
+    "/joint_states": "sensor_msgs/msg/JointState",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 # `bag play` plays topics of this type only when they are named (see play()).
