@@ -18,9 +18,11 @@ Isolation: unless ``visible=True``, DDS discovery is switched off
 sees them), so a demo can never send its simulated corrections to a real telescope's
 actuators on the same network, and two demos never cross-talk.
 
-Figure of merit (the closed-loop issue's definition): the wavefront error of a visit is the
-true wavefront minus the design (intrinsic) wavefront, as sqrt(sum over Z4..Z22 of the squared
-coefficients) per corner, averaged over the four corners, in nm.
+Figures of merit (the closed-loop issue's definitions), from the simulator's truth
+(``SimTruth``): the corner figure is the true wavefront minus the design (intrinsic) wavefront,
+as sqrt(sum over Z4..Z22 of the squared coefficients) per corner, averaged over the four
+corners, in nm; the field figure is the same departure over the science field's 31
+Gaussian-quadrature points (:mod:`cwfs_ros.sim.field_truth`), with the optical PSF FWHM it adds.
 """
 
 from __future__ import annotations
@@ -75,8 +77,7 @@ class LoopConfig:
         domain_id: DDS domain when visible (default: ``ROS_DOMAIN_ID`` or 0).
         visit_timeout_s: give up on a visit whose truth or correction does not arrive.
         keep_images: visits whose 8 donuts are kept for the report (1-based; -1 = the last).
-        rotator_angle_deg: the camera rotator's angle (camera_sim_node renders the rotated
-            camera and publishes the angle on joint_states).
+        rotator_angle_deg: the camera rotator angle of every visit [deg].
     """
 
     visits: int = 8
@@ -114,8 +115,9 @@ class VisitRecord:
     solve_s: float                   # 76-vector received -> DofCorrection received
     corner_compute_ms: np.ndarray    # per-corner estimator time in its worker (4,)
     images: dict[tuple[str, str], np.ndarray] | None = None
-    field_error_nm: float = float("nan")   # true error over the science field (SimTruth)
-    fwhm_arcsec: float = float("nan")      # PSF FWHM the optics add over the field (SimTruth)
+    field_error_nm: float = float("nan")   # SimTruth field figure (GQ points, design removed)
+    fwhm_arcsec: float = float("nan")      # SimTruth optical FWHM over the field
+    rotator_angle_deg: float = 0.0         # the visit's camera rotator angle
     predicted_field_nm: float = float("nan")  # ofc_node's prediction of the field error
 
     @property
@@ -159,15 +161,19 @@ class LoopRun:
 
     @property
     def field_error_nm(self) -> np.ndarray:
-        """Per visit, the true wavefront error over the science field [nm]."""
+        """The field figure per visit (SimTruth.field_wavefront_rms_nm) [nm]."""
         return np.array([r.field_error_nm for r in self.records])
 
-    def reduction(self, within: int = 5, figure: str = "field") -> float:
+    @property
+    def fwhm_arcsec(self) -> np.ndarray:
+        return np.array([r.fwhm_arcsec for r in self.records])
+
+    def reduction(self, within: int = 5, figure: str = "corner") -> float:
         """First visit's error / the lowest error of visits 2..``within``.
 
         "Falls 5x within 5 visits" counts the first visit, so it allows 4 corrections: the
-        5th visit is rendered after the 4th correction. ``figure``: ``field`` (the science
-        field's error, what image quality follows) or ``corner``.
+        5th visit is rendered after the 4th correction. ``figure``: ``"corner"`` or
+        ``"field"``.
         """
         e = self.field_error_nm if figure == "field" else self.true_error_nm
         if len(e) < 2:
@@ -179,14 +185,15 @@ class LoopRun:
         return {
             "visits": len(self.records),
             "true_error_nm": [round(float(x), 2) for x in e],
-            "field_error_nm": [round(float(x), 2) for x in self.field_error_nm],
-            "fwhm_arcsec": [round(float(r.fwhm_arcsec), 4) for r in self.records],
-            "reduction_within_5_corner": round(self.reduction(5, "corner"), 2),
+            "true_field_error_nm": [round(float(x), 2) for x in self.field_error_nm],
+            "fwhm_arcsec": [round(float(x), 4) for x in self.fwhm_arcsec],
+            "rotator_angle_deg": self.config.rotator_angle_deg,
             "estimated_error_nm": [round(float(r.estimated_error_nm), 2) for r in self.records],
             "estimate_rms_error_nm": [round(r.median_estimate_error_nm, 2)
                                       for r in self.records],
             "corrections_valid": [bool(r.correction_valid) for r in self.records],
             "reduction_within_5": round(self.reduction(5), 2),
+            "field_reduction_within_5": round(self.reduction(5, "field"), 2),
             "render_s": [round(r.render_s, 3) for r in self.records],
             "estimate_s": [round(r.estimate_s, 4) for r in self.records],
             "solve_s": [round(r.solve_s, 4) for r in self.records],
@@ -449,6 +456,7 @@ class LoopMonitor:
                     if keep_images else None),
             field_error_nm=float(truth.field_wavefront_rms_nm),
             fwhm_arcsec=float(truth.fwhm_arcsec),
+            rotator_angle_deg=float(truth.rotator_angle_deg),
             predicted_field_nm=float(dof.predicted_field_rms_nm),
         )
 
@@ -465,14 +473,16 @@ def write_report(run: LoopRun, out_dir: str | Path) -> dict[str, Path]:
     plot_closed_loop(run, paths["png"])
     with paths["csv"].open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["visit", "stamp_ns", "true_error_nm", "estimated_error_nm",
+        w.writerow(["visit", "stamp_ns", "true_error_nm", "true_field_error_nm", "fwhm_arcsec",
+                    "rotator_angle_deg", "estimated_error_nm",
                      "median_corner_estimate_rms_error_nm", "correction_valid",
                      "correction_status", "render_s", "estimate_s", "solve_s",
                      *[f"dof_state_{i}" for i in range(N_DOF)],
                      *[f"correction_{i}" for i in range(N_DOF)]])
         for r in run.records:
             w.writerow([r.visit, r.stamp_ns, f"{r.true_error_nm:.3f}",
-                        f"{r.estimated_error_nm:.3f}",
+                        f"{r.field_error_nm:.3f}", f"{r.fwhm_arcsec:.4f}",
+                        f"{r.rotator_angle_deg:g}", f"{r.estimated_error_nm:.3f}",
                         f"{r.median_estimate_error_nm:.3f}", r.correction_valid,
                         r.correction_status, f"{r.render_s:.3f}", f"{r.estimate_s:.4f}",
                         f"{r.solve_s:.4f}", *[f"{x:.6g}" for x in r.dof_state],
@@ -485,12 +495,13 @@ def write_report(run: LoopRun, out_dir: str | Path) -> dict[str, Path]:
 def _html(run: LoopRun, png_name: str) -> str:
     rows = "\n".join(
         f"<tr><td>{r.visit}</td><td>{r.true_error_nm:.1f}</td>"
+        f"<td>{r.field_error_nm:.1f}</td><td>{r.fwhm_arcsec:.3f}</td>"
         f"<td>{r.estimated_error_nm:.1f}</td>"
         f"<td>{r.median_estimate_error_nm:.1f}</td>"
         f"<td>{'yes' if r.correction_valid else 'no: ' + r.correction_status}</td>"
         f"<td>{r.render_s:.1f}</td><td>{1e3 * r.estimate_s:.0f}</td>"
         f"<td>{1e3 * r.solve_s:.0f}</td></tr>" for r in run.records)
-    e = run.true_error_nm
+    e, fe = run.true_error_nm, run.field_error_nm
     return f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>cwfs_ros closed-loop demo</title>
 <style>body{{font-family:sans-serif;max-width:1200px;margin:auto}}
@@ -498,13 +509,15 @@ td,th{{padding:2px 10px;text-align:right}}</style></head><body>
 <h1>cwfs_ros closed-loop demo</h1>
 <p>{len(run.records)} visits of the simulated Rubin/LSST telescope (batoid ray tracing,
 {run.config.n_photons:g} photons per donut) through camera_sim_node, wavefront_node and
-ofc_node. True wavefront error over the science field (design removed,
-sqrt(&Sigma; Z4..Z22&sup2;) averaged over 31 Gaussian-quadrature points):
-{run.field_error_nm[0]:.0f} nm at the first visit, {run.field_error_nm[-1]:.0f} nm at the last,
-a reduction of {run.reduction(5):.1f}&times; within 5 visits; at the four corners
-{e[0]:.0f} nm and {e[-1]:.0f} nm.</p>
+ofc_node. True wavefront error (design removed, mean over corners of
+sqrt(&Sigma; Z4..Z22&sup2;)): {e[0]:.0f} nm at the first visit, {e[-1]:.0f} nm at the last,
+a reduction of {run.reduction(5):.1f}&times; within 5 visits. Over the science field (31
+Gaussian-quadrature points): {fe[0]:.0f} nm &rarr; {fe[-1]:.0f} nm, a reduction of
+{run.reduction(5, "field"):.1f}&times; within 5 visits. Camera rotator
+{run.config.rotator_angle_deg:g}&deg;.</p>
 <img src="{png_name}" style="width:100%">
-<table><tr><th>visit</th><th>true error (nm)</th><th>estimated error (nm)</th>
+<table><tr><th>visit</th><th>true corner error (nm)</th><th>true field error (nm)</th>
+<th>optical FWHM (arcsec)</th><th>estimated error (nm)</th>
 <th>median corner estimate RMS error (nm)</th><th>correction valid</th><th>render (s)</th>
 <th>estimate (ms)</th><th>solve (ms)</th></tr>
 {rows}

@@ -258,9 +258,16 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
     true_e = np.array([r.true_error_nm for r in recs])
     est_e = np.array([r.estimated_error_nm for r in recs])
     est_err = np.array([r.median_estimate_error_nm for r in recs])
-    field_e = np.array([r.field_error_nm for r in recs])
-    ax.semilogy(v, field_e, "-D", color="C2", ms=5, label="true error over the science field")
-    ax.semilogy(v, true_e, "-o", color="k", label="true error at the corners")
+    ax.semilogy(v, true_e, "-o", color="k", label="true wavefront error, corners")
+    field_e = np.array([getattr(r, "field_error_nm", np.nan) for r in recs])
+    if np.any(np.isfinite(field_e)):
+        ax.semilogy(v, field_e, "-D", color="C2", ms=4,
+                    label="true wavefront error, science field (GQ)")
+        fwhm = np.array([getattr(r, "fwhm_arcsec", np.nan) for r in recs])
+        ax2 = ax.twinx()
+        ax2.plot(v, fwhm, ":", color="C2", marker="v", ms=4, alpha=0.7)
+        ax2.set_ylabel("optical FWHM over the field (arcsec, dotted)", color="C2")
+        ax2.set_ylim(bottom=0.0)
     ax.semilogy(v, est_e, "--s", color="C0", ms=4, label="measured by wavefront_node")
     ax.semilogy(v, est_err * np.sqrt(n), ":^", color="C3", ms=4,
                 label="estimate error (same norm)")
@@ -269,9 +276,11 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
         ax.plot(bad, true_e[np.isin(v, bad)], "x", color="r", ms=10,
                 label="correction refused")
     ax.set_xlabel("visit")
-    ax.set_ylabel("sqrt(sum Z4..Z22^2), design removed (nm)")
-    ax.set_title(f"(c) convergence over the field: {field_e[0]:.0f} -> {field_e[-1]:.0f} nm",
-                 fontsize=10)
+    ax.set_ylabel("sqrt(sum Z4..Z22^2): corner mean, field GQ (nm)")
+    title = f"(c) convergence: corners {true_e[0]:.0f} -> {true_e[-1]:.0f} nm"
+    if np.all(np.isfinite(field_e)):
+        title += f", field {field_e[0]:.0f} -> {field_e[-1]:.0f} nm"
+    ax.set_title(title, fontsize=10)
     ax.set_xticks(v)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
@@ -296,6 +305,8 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
 
     fig.suptitle(
         f"cwfs_ros closed loop: camera_sim_node -> wavefront_node -> ofc_node, "
-        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut", fontsize=12)
+        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut"
+        + (f", camera rotator {getattr(run.config, 'rotator_angle_deg', 0.0):g} deg"
+           if getattr(run.config, "rotator_angle_deg", 0.0) else ""), fontsize=12)
     fig.savefig(path, format="png")
     return path

@@ -1,8 +1,13 @@
 #!/usr/bin/env python3
-"""Compute the bundled 76x50 wavefront sensitivity matrix from the batoid simulator.
+"""Compute the project's wavefront sensitivity matrices from the batoid simulator.
 
     .venv/bin/python tools/make_sensitivity.py          # writes config/ofc/sensitivity_bundled_r.*
     .venv/bin/python tools/make_sensitivity.py --check  # recompute and compare, write nothing
+    .venv/bin/python tools/make_sensitivity.py --dz     # writes config/ofc/sensitivity_dz_bundled.*
+    .venv/bin/python tools/make_sensitivity.py --dz --check
+
+``--dz`` fits a double Zernike (see :func:`compute_dz`) so that the matrix can be evaluated at
+any field point; the default is the 76x50 matrix at the four corners described below.
 
 For each of the 50 DoF (ts_ofc order and units, batoid_rubin/OCS sign convention, the one of
 ``cwfs_msgs/DofCorrection``) the matrix column is the central finite difference
@@ -58,6 +63,23 @@ STEPS = np.array([10.0, 100.0, 100.0, 0.005, 0.005, 10.0, 100.0, 100.0, 0.01, 0.
                  + [0.05] * 40)
 OUT_NPY = REPO / "config" / "ofc" / C.BUNDLED_MATRIX_FILENAME
 OUT_NOTE = OUT_NPY.with_suffix(".md")
+
+# Double-Zernike fit (--dz): galsim.zernike.DoubleZernike conventions, as
+# cwfs_ros.core.control._eval_double_zernike evaluates ts_ofc's matrix.
+DZ_NPY = REPO / "config" / "ofc" / "sensitivity_dz_bundled.npy"
+DZ_NOTE = DZ_NPY.with_suffix(".md")
+DZ_FIELD_RADIUS_DEG = 1.75  # uv_outer (uv_inner 0)
+DZ_PUPIL_INNER_M, DZ_PUPIL_OUTER_M = 2.558, 4.18  # xy_inner, xy_outer
+DZ_EPS = DZ_PUPIL_INNER_M / DZ_PUPIL_OUTER_M  # batoid.zernike's R_outer is pupilSize/2 = 4.18
+DZ_KMAX = 28  # field Zernikes Noll 1..28: complete radial orders 0..6
+# Field grid: the centre and rings at the five Gaussian-quadrature radii (where the controller
+# evaluates the field), one between the outer two, and the field edge; the corners (1.706 deg,
+# at any rotator angle) lie on the 1.708 ring. Near the edge vignetting sets in and some
+# bending columns grow steeply (M1M3 mode 19: x15 from 1.25 to 1.75 deg), so the rings are
+# denser there. 99 points.
+DZ_RING_RADII_DEG = (0.379, 0.841, 1.237, 1.535, 1.64, 1.708, 1.75)
+DZ_RING_POINTS = (6, 8, 12, 16, 16, 24, 16)
+DZ_NX = 64  # batoid.zernike pupil grid (the fit, not the grid, limits the accuracy)
 
 
 def corner_fields() -> list[tuple[float, float]]:
@@ -148,11 +170,177 @@ convention by `SensitivityMatrix.from_ts_ofc`, evaluated at the same mid-points)
     OUT_NOTE.write_text(text, encoding="utf-8")
 
 
+def dz_fields_deg() -> np.ndarray:
+    """(99, 2) field points [deg] of the fit: the centre and :data:`DZ_RING_RADII_DEG`, every
+    other ring turned by half a step."""
+    pts = [(0.0, 0.0)]
+    for k, (r, n) in enumerate(zip(DZ_RING_RADII_DEG, DZ_RING_POINTS, strict=True)):
+        a = 2.0 * np.pi * (np.arange(n) + 0.5 * (k % 2)) / n
+        pts += list(zip(r * np.cos(a), r * np.sin(a), strict=True))
+    return np.array(pts)
+
+
+def dz_zernikes(dof: np.ndarray, fields: np.ndarray, nx: int = DZ_NX) -> np.ndarray:
+    """(n_fields, 19) true Z4..Z22 [nm] on the 2.558..4.18 m annulus (telescope frame)."""
+    import batoid
+
+    tel = perturbed_telescope(dof, BAND)
+    out = np.empty((fields.shape[0], C.N_ZK))
+    for k, (x, y) in enumerate(fields):
+        zk = batoid.zernike(tel, np.deg2rad(x), np.deg2rad(y), WAVELENGTH_NM * 1e-9, jmax=22,
+                            eps=DZ_EPS, nx=nx)
+        out[k] = np.asarray(zk[4:23]) * WAVELENGTH_NM
+    return out
+
+
+def dz_columns(fields: np.ndarray, nx: int = DZ_NX, verbose: bool = True) -> np.ndarray:
+    """(n_fields, 19, 50) central finite differences [nm per DoF unit] at ``fields``."""
+    out = np.empty((fields.shape[0], C.N_ZK, N_DOF))
+    t0 = time.perf_counter()
+    for i in range(N_DOF):
+        d = np.zeros(N_DOF)
+        d[i] = STEPS[i]
+        out[:, :, i] = (dz_zernikes(d, fields, nx) - dz_zernikes(-d, fields, nx)) / (2 * STEPS[i])
+        if verbose:
+            print(f"{i:2d} {DOF_NAMES[i]:9s} [{time.perf_counter() - t0:6.1f} s]", flush=True)
+    return out
+
+
+def fit_dz(fields: np.ndarray, values: np.ndarray, kmax: int = DZ_KMAX) -> np.ndarray:
+    """Field-Zernike fit of ``values`` (n_fields, 19, 50) -> (kmax + 1, 23, 50) double-Zernike
+    coefficients ``[k, j, d]`` (k = 0 and j = 0..3 zero).
+
+    Per DoF, a least-squares fit with each field point weighted by 1 / |column there|: the
+    relative error is balanced over the field, so a column that grows steeply near the edge
+    does not buy its edge values with the rest of the field (M1M3 mode 19 at the corners:
+    35 % instead of 67 % unweighted)."""
+    import galsim
+
+    basis = galsim.zernike.zernikeBasis(kmax, fields[:, 0], fields[:, 1],
+                                        R_outer=DZ_FIELD_RADIUS_DEG)[1:]  # (kmax, n)
+    out = np.zeros((kmax + 1, C.NOLL_MAX + 1, N_DOF))
+    for d in range(N_DOF):
+        w = 1.0 / np.maximum(np.linalg.norm(values[:, :, d], axis=1), 1e-12)
+        coef, *_ = np.linalg.lstsq((basis * w).T, values[:, :, d] * w[:, None], rcond=None)
+        out[1:, C.NOLL_MIN:, d] = coef
+    return out
+
+
+def eval_dz(dz: np.ndarray, fields: np.ndarray) -> np.ndarray:
+    """(n_fields, 19, 50) of a (k, 23, 50) double Zernike, with galsim.DoubleZernike."""
+    import galsim
+
+    out = np.empty((fields.shape[0], C.N_ZK, N_DOF))
+    for d in range(N_DOF):
+        dzd = galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0.0,
+                                           uv_outer=DZ_FIELD_RADIUS_DEG,
+                                           xy_inner=DZ_PUPIL_INNER_M, xy_outer=DZ_PUPIL_OUTER_M)
+        for k, zk in enumerate(dzd(fields[:, 0], fields[:, 1])):
+            out[k, :, d] = np.asarray(zk.coef)[C.NOLL_MIN:C.NOLL_MAX + 1]
+    return out
+
+
+def dz_checks(dz: np.ndarray, nx: int = DZ_NX) -> list[str]:
+    """Figures of the fit: against the 76x50 bundled matrix at the corners, and against a
+    fresh finite difference at off-grid field points."""
+    lines = []
+    corners = C.corner_mid_field_points_deg()
+    at_corners = eval_dz(dz, corners).reshape(-1, N_DOF)
+    bundled = C.SensitivityMatrix.from_bundled().matrix_nm
+    rel = np.linalg.norm(at_corners - bundled, axis=0) / np.linalg.norm(bundled, axis=0)
+    worst = ", ".join(f"{DOF_NAMES[i]} {rel[i]:.2f}" for i in np.argsort(-rel)[:6])
+    lines.append(f"corners vs sensitivity_bundled_r.npy: per-DoF relative difference median "
+                 f"{np.median(rel):.2e}, rigid max {rel[:10].max():.2e}; worst: {worst}")
+    rng = np.random.default_rng(2026)
+    r = DZ_FIELD_RADIUS_DEG * np.sqrt(rng.uniform(0.0, 1.0, 3))
+    a = rng.uniform(0.0, 2.0 * np.pi, 3)
+    pts = np.c_[r * np.cos(a), r * np.sin(a)]
+    fresh = dz_columns(pts, nx=nx, verbose=False)
+    model = eval_dz(dz, pts)
+    for k, p in enumerate(pts):
+        rel = (np.linalg.norm(model[k] - fresh[k], axis=0)
+               / np.linalg.norm(fresh[k], axis=0))
+        lines.append(f"off-grid field ({p[0]:+.4f}, {p[1]:+.4f}) deg vs a fresh finite "
+                     f"difference: per-DoF relative difference median {np.median(rel):.2e}, "
+                     f"max {rel.max():.2e} ({DOF_NAMES[int(np.argmax(rel))]})")
+    return lines
+
+
+def write_dz_note(dz: np.ndarray, fields: np.ndarray, checks: list[str], wall_s: float,
+                  nx: int) -> None:
+    import batoid
+    import galsim
+
+    sha = hashlib.sha256(DZ_NPY.read_bytes()).hexdigest()
+    text = f"""# {DZ_NPY.name}: provenance
+
+Made by `tools/make_sensitivity.py --dz` (this project) on {_dt.date.today().isoformat()} in
+{wall_s:.0f} s, batoid {batoid.__version__}, galsim {galsim.__version__}, numpy
+{np.__version__}, Python {platform.python_version()}. Command:
+
+    .venv/bin/python tools/make_sensitivity.py --dz          # regenerate
+    .venv/bin/python tools/make_sensitivity.py --dz --check  # recompute and compare
+
+- **What:** the wavefront sensitivity as a double Zernike: float64 array of shape
+  {dz.shape}, index `[k, j, d]`: k the field Noll index (1..{dz.shape[0] - 1}; row 0 zero), j
+  the pupil Noll index (4..22; 0..3 zero), d the DoF. **nm of wavefront (OPD) per DoF unit**
+  (µm, or degrees for rx/ry), **wavefront sign** (`wavefront_change = A @ dof_change`),
+  **batoid_rubin/OCS DoF convention** (`cwfs_msgs/DofCorrection`, and
+  `cwfs_ros.sim.perturbed_telescope`'s default), telescope frame (unrotated camera).
+- **Evaluate** with `galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0, uv_outer=
+  {DZ_FIELD_RADIUS_DEG}, xy_inner={DZ_PUPIL_INNER_M}, xy_outer={DZ_PUPIL_OUTER_M})` at field
+  points (deg, batoid field frame), as `cwfs_ros.core.control._eval_double_zernike` evaluates
+  ts_ofc's matrix (`configurations/lsst.yaml` radii): its `.coef[4:23]` are nm per DoF unit.
+- **How:** central finite differences (half-steps as `sensitivity_bundled_r.npy`: M2 dz 10 µm,
+  dx/dy 100 µm, rx/ry 0.005 deg; camera dz 10 µm, dx/dy 100 µm, rx/ry 0.01 deg; bending
+  0.05 µm) of batoid.zernike (r band, `LSST_r.yaml`, {WAVELENGTH_NM:g} nm, annular Noll 4..22
+  with eps {DZ_EPS:.5f} = 2.558 / 4.18, nx={nx}) of the in-focus
+  `perturbed_telescope(dof, "r")`, at {fields.shape[0]} field points (the centre and rings
+  at {", ".join(f"{r:g}" for r in DZ_RING_RADII_DEG)} deg of
+  {", ".join(str(n) for n in DZ_RING_POINTS)} points: the five Gaussian-quadrature radii, one
+  between the outer two, the edge; the corners lie on the 1.708 ring), then a fit of field
+  Zernikes Noll 1..{dz.shape[0] - 1} (radius {DZ_FIELD_RADIUS_DEG} deg) per pupil term and
+  DoF, each field point weighted by 1 / |column there| (relative error balanced).
+- **Limits:** near the field edge vignetting sets in and some bending columns change steeply
+  with the field (M1M3 mode 19 grows 15x from 1.25 to 1.75 deg); a smooth double Zernike
+  cannot follow that. The worst columns at the corners are listed below.
+- **Approximation:** bending modes are the j <= 28 Zernike part of batoid_rubin's legacy modes
+  (see `sensitivity_bundled_r.md`).
+- **Checks** (`--dz --check` prints them again):
+""" + "".join(f"  - {c}\n" for c in checks) + f"""- sha256 `{sha}`
+"""
+    DZ_NOTE.write_text(text, encoding="utf-8")
+
+
+def main_dz(check: bool, nx: int) -> int:
+    t0 = time.perf_counter()
+    fields = dz_fields_deg()
+    dz = fit_dz(fields, dz_columns(fields, nx=nx))
+    wall = time.perf_counter() - t0
+    if check:
+        old = np.load(DZ_NPY)
+        err = np.abs(old - dz).max()
+        print(f"max |bundled - recomputed| = {err:.3g} nm per DoF unit")
+        print("\n".join(dz_checks(old, nx)))
+        return 0 if err <= 1e-6 * np.abs(dz).max() else 1
+    np.save(DZ_NPY, dz)
+    checks = dz_checks(dz, nx)
+    print("\n".join(checks))
+    write_dz_note(dz, fields, checks, wall, nx)
+    print(f"wrote {DZ_NPY} and {DZ_NOTE} ({wall:.0f} s)")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true",
                     help="recompute and compare with the bundled file; write nothing")
+    ap.add_argument("--dz", action="store_true",
+                    help="the double-Zernike matrix (config/ofc/sensitivity_dz_bundled.npy)")
+    ap.add_argument("--nx", type=int, default=DZ_NX, help="pupil grid of --dz")
     args = ap.parse_args()
+    if args.dz:
+        return main_dz(args.check, args.nx)
     a, nonlin = compute()
     table = compare_ts_ofc(a)
     print("\n".join(table))

@@ -1,0 +1,81 @@
+"""The project's double-Zernike sensitivity (config/ofc/sensitivity_dz_bundled.npy).
+
+The committed file is loaded (generating it takes minutes: tools/make_sensitivity.py --dz) and
+evaluated the way the controller evaluates ts_ofc's double Zernikes; the truth is the 76x50
+corner matrix and a fresh batoid finite difference at a field point off the fit's grid.
+"""
+
+from __future__ import annotations
+
+import batoid
+import numpy as np
+import pytest
+
+from cwfs_ros.core import control as C
+from cwfs_ros.paths import config_dir
+from cwfs_ros.sim import perturbed_telescope
+
+DZ_FILE = config_dir() / "ofc" / "sensitivity_dz_bundled.npy"
+EPS = 2.558 / 4.18
+# Columns that change steeply with the field where vignetting sets in (near the corners): a
+# smooth double Zernike misses them by 10-20 % (config/ofc/sensitivity_dz_bundled.md).
+STEEP = [28, 45, 46]  # M1M3 mode 19, M2 modes 16 and 17
+STEPS = np.array([10.0, 100.0, 100.0, 0.005, 0.005, 10.0, 100.0, 100.0, 0.01, 0.01]
+                 + [0.05] * 40)
+
+
+@pytest.fixture(scope="module")
+def dz() -> np.ndarray:
+    return np.load(DZ_FILE, allow_pickle=False)
+
+
+def _evaluate(dz: np.ndarray, fields: np.ndarray) -> np.ndarray:
+    """(19 n, 50) with control's double-Zernike evaluator and ts_ofc's radii."""
+    cfg = C.load_optics_config()
+    out = np.stack([C._eval_double_zernike(dz[:, :, d], fields, cfg)
+                    for d in range(C.N_DOF)], axis=-1)
+    return out.reshape(-1, C.N_DOF)
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(a - b, axis=0) / np.linalg.norm(b, axis=0)
+
+
+def test_layout(dz):
+    assert dz.dtype == np.float64 and dz.ndim == 3 and dz.shape[1:] == (23, 50)
+    assert not np.any(dz[0]) and not np.any(dz[:, :4])
+    assert np.all(np.isfinite(dz))
+
+
+def test_matches_the_corner_matrix_at_the_corners(dz):
+    at = _evaluate(dz, C.corner_mid_field_points_deg())
+    bundled = C.sensitivity_for_source("bundled").matrix_nm
+    rel = _relative(at, bundled)
+    print(f"\ncorners: per-DoF relative difference median {np.median(rel):.1e}, rigid max "
+          f"{rel[:10].max():.1e}, bending max {rel[10:].max():.1e}")
+    # the corner matrix is eps 0.61 and a 255 grid, the double Zernike eps 0.612, a 64 grid
+    assert rel[:10].max() < 0.01
+    assert np.median(rel) < 0.01
+    assert np.delete(rel, STEEP).max() < 0.05 and rel[STEEP].max() < 0.3
+
+
+def test_matches_batoid_off_the_fit_grid(dz):
+    field = np.array([[0.6231, -1.3077]])  # r = 1.449 deg, between rings, no symmetry
+    wl = 622.0
+    thx, thy = np.deg2rad(field[0])
+
+    def zk(dof):
+        tel = perturbed_telescope(dof, "r")
+        return batoid.zernike(tel, thx, thy, wl * 1e-9, jmax=22, eps=EPS, nx=128)[4:23] * wl
+
+    fresh = np.empty((C.N_ZK, C.N_DOF))
+    for i in range(C.N_DOF):
+        d = np.zeros(C.N_DOF)
+        d[i] = STEPS[i]
+        fresh[:, i] = (zk(d) - zk(-d)) / (2.0 * STEPS[i])
+    rel = _relative(_evaluate(dz, field), fresh)
+    print(f"\noff-grid field {field[0]}: per-DoF relative difference median "
+          f"{np.median(rel):.1e}, rigid max {rel[:10].max():.1e}, max {rel.max():.1e}")
+    assert rel[:10].max() < 0.005
+    assert np.median(rel) < 0.005
+    assert np.delete(rel, STEEP).max() < 0.1 and rel[STEEP].max() < 0.3
