@@ -26,8 +26,9 @@ MSG_NAMES = ["CornerWavefront", "WavefrontVector", "DofCorrection", "SimTruth"]
 # The layout contract: every fixed-size array field and its length.
 FIXED_ARRAYS = {
     "CornerWavefront": {"field_deg": 2, "field_intra_deg": 2, "field_extra_deg": 2},
-    "WavefrontVector": {"zernikes_nm": 76, "corner_valid": 4, "corners": 4},
-    "DofCorrection": {"dof": 50, "dof_total": 50},
+    "WavefrontVector": {"zernikes_nm": 76, "corner_valid": 4, "corners": 4,
+                        "uncertainty_nm": 76, "n_pairs": 4},
+    "DofCorrection": {"dof": 50, "dof_total": 50, "dof_uncertainty": 50},
     "SimTruth": {"dof_state": 50, "zernikes_nm": 76, "intrinsic_nm": 76},
 }
 
@@ -49,7 +50,8 @@ def _cwfs_msgs_prefix() -> Path:
 
 
 def _fill_value(base: str, n: int):
-    return {"double": [0.5] * n, "boolean": [True] * n, "string": ["x"] * n}[base]
+    return {"double": [0.5] * n, "boolean": [True] * n, "string": ["x"] * n,
+            "uint16": [3] * n}[base]
 
 
 def test_messages_import_with_expected_fields():
