@@ -183,12 +183,27 @@ def test_rotator_history():
     assert h.add(11_000_000_000, np.deg2rad(20.0)) is None
     assert h.add(10_500_000_000, 0.0) is not None  # older than the last sample: ignored
     assert h.add(12_000_000_000, float("nan")) is not None
+    assert h.add(12_000_000_000, 1e10) is not None  # not an angle
+    assert h.add(0, 0.1) is not None  # unset stamp
     a, _ = h.angle_deg(10_500_000_000)
     assert a == pytest.approx(15.0)
     a, _ = h.angle_deg(11_900_000_000)
     assert a == pytest.approx(20.0)
     a, why = h.angle_deg(13_000_000_000)
     assert a is None and "within 1 s" in why
+
+
+def test_absurd_uncertainties_carry_no_weight_and_do_not_break_the_solve():
+    ctl = KalmanOFC(OpticalModel("bundled"))
+    at = ctl.model.at(0.0)
+    x = np.zeros(C.N_DOF)
+    x[1] = 300.0
+    unc = np.full(C.N_MEAS, 15.0)
+    unc[:19] = 1e300  # R00 says: do not trust me
+    unc[19] = np.nan  # not reported: the default
+    res = ctl.step(at.intrinsic_nm + at.H @ x, uncertainty_nm=unc, stamp_ns=1)
+    assert res.valid and np.all(np.isfinite(res.dof))
+    assert res.dof[1] == pytest.approx(-300.0, rel=0.2)
 
 
 def test_settings_are_checked():

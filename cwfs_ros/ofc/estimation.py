@@ -29,7 +29,10 @@ import numpy as np
 from cwfs_ros.core import control as C
 from cwfs_ros.core.errors import ConfigError
 
-__all__ = ["Observability", "measurement_covariance", "observability"]
+__all__ = ["MAX_UNCERTAINTY_NM", "Observability", "measurement_covariance", "observability"]
+
+#: Uncertainties above this are taken as this [nm]: 1 mm of wavefront, no information.
+MAX_UNCERTAINTY_NM = 1e6
 
 
 def measurement_covariance(
@@ -62,6 +65,9 @@ def measurement_covariance(
         if sig.size != n_rows:
             raise ConfigError(f"uncertainty_nm must have {n_rows} entries, got {sig.size}")
         sig = np.where(np.isfinite(sig) & (sig > 0), sig, default_nm)
+    # A term reported as more uncertain than any wavefront the telescope makes carries no
+    # weight either way; the cap keeps the covariance's factorisation finite.
+    sig = np.minimum(sig, MAX_UNCERTAINTY_NM)
     var = sig**2 + floor_nm**2
     blocks = []
     for c in range(n_rows // C.N_ZK):

@@ -19,6 +19,8 @@ __all__ = ["ROTATOR_JOINT", "RotatorHistory"]
 
 #: Name of the camera rotator's joint in ``sensor_msgs/JointState`` (position in radians).
 ROTATOR_JOINT = "camera_rotator"
+#: No rotator turns further than one turn either way [rad].
+MAX_ANGLE_RAD = 2.0 * np.pi
 
 
 class RotatorHistory:
@@ -40,6 +42,9 @@ class RotatorHistory:
         """Record a sample; returns why it was ignored (non-finite, unset or older stamp)."""
         if not np.isfinite(angle_rad):
             return f"non-finite rotator position {angle_rad!r}"
+        if abs(angle_rad) > MAX_ANGLE_RAD:
+            return (f"rotator position {angle_rad!r} rad is beyond +-{MAX_ANGLE_RAD:.4g} rad "
+                    "(one turn either way): not a rotator angle")
         if stamp_ns <= 0:
             return "rotator sample with an unset stamp"
         if self._stamps and stamp_ns < self._stamps[-1]:
