@@ -150,15 +150,19 @@ def check_saturation(image: np.ndarray, *, name: str, background: float, noise_p
             raise SaturatedImageError(
                 f"{name} donut is saturated: {n_sat} pixel(s) at or above the saturation "
                 f"level {level:.6g} (maximum {float(image.max()):.6g})")
-    if not (config.plateau_check and noise_present):
+    if not config.plateau_check:
         return
     top = float(image.max())
     if not top > background:
         return  # nothing above the background: the flat-image checks name that
     # "Exactly at the maximum" up to float32 rounding (a clipped float64 image sent as
-    # 32FC1), far finer than any photon noise or integer quantum.
-    tol = 4.0 * float(np.finfo(np.float32).eps) * max(abs(top), abs(background), 1e-30)
+    # 32FC1), far finer than any photon noise or integer quantum. Relative to the image's
+    # own scale only: an absolute floor would put every pixel of a tiny-valued image "at
+    # the maximum".
+    tol = 4.0 * float(np.finfo(np.float32).eps) * max(abs(top), abs(background))
     at_top = image >= top - tol
+    if not (noise_present or _donut_noisy(image, donut & ~at_top, background)):
+        return
     n_top = int(np.count_nonzero(at_top))
     if n_top < max(config.plateau_min_pixels, config.plateau_min_fraction * body_pixels):
         return
@@ -175,6 +179,29 @@ def check_saturation(image: np.ndarray, *, name: str, background: float, noise_p
         f"the stamp) sit at exactly its maximum, level {top:.6g} (background "
         f"{background:.4g}); a genuine donut's brightest pixels differ by photon noise. Set "
         "the instrument's saturation_level if that is the detector's full well")
+
+
+# Photon noise makes a pixel's second difference about as large as its first difference
+# (ratio sqrt(3/4) for white noise); a smooth noise-free model image has second differences
+# far below its first ones (the ratio ~ 1/(surface brightness scale length in px)).
+_NOISY_RATIO = 0.5
+_NOISY_MIN_TRIPLES = 50
+
+
+def _donut_noisy(image: np.ndarray, mask: np.ndarray, background: float) -> bool:
+    """Whether the lit pixels of ``mask`` (above ``background``) show pixel noise.
+
+    A clipped donut on a background of exactly zero has no noise in its background, but
+    photon noise on its rim and body: judged here, so that it gets the plateau test.
+    """
+    lit = mask & (image > background)
+    trip = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
+    if int(np.count_nonzero(trip)) < _NOISY_MIN_TRIPLES:
+        return False
+    x0, x1, x2 = image[:, :-2][trip], image[:, 1:-1][trip], image[:, 2:][trip]
+    d1 = float(np.median(np.abs(x1 - x0)))
+    d2 = float(np.median(np.abs(x1 - 0.5 * (x0 + x2))))
+    return d1 > 0 and d2 > _NOISY_RATIO * d1
 
 
 # -- swapped intra/extra -------------------------------------------------------------------

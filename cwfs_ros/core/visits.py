@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .images import decode_image
+from .images import decode_checked
 
 __all__ = [
     "CORNERS",
@@ -118,7 +118,7 @@ def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> 
     rec = ImageRecord(corner, side, stamp_to_ns(msg.header.stamp),
                       frame_id=str(msg.header.frame_id), received=float(received))
     try:
-        rec.image = decode_image(msg.data, height=msg.height, width=msg.width,
+        rec.image = decode_checked(msg.data, height=msg.height, width=msg.width,
                                  encoding=msg.encoding, step=msg.step,
                                  is_bigendian=bool(msg.is_bigendian))
     except ValueError as exc:  # ImageDecodeError is a ValueError
