@@ -18,6 +18,7 @@ images and configuration come back as an invalid outcome whose ``status`` names 
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 import os
 import threading
@@ -134,8 +135,9 @@ class CornerOutcome:
         reason: the tag alone (``""`` when valid), for counting.
         field_deg: field of the estimate (mid-point of the two half-chips), degrees.
         compute_ms: wall time spent in the worker, ms.
-        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated (a
-            single stamp pair); frames give it from the pairs' combination.
+        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated;
+            a stamp pair gives the calibrated noise model's (:func:`stamp_uncertainty_nm`),
+            frames the pairs' combination's.
         n_pairs: donut pairs combined (1 for a stamp pair; 0 when none was usable).
     """
 
@@ -219,7 +221,30 @@ def run_corner_job(job: CornerJob) -> CornerOutcome:
     return CornerOutcome(job.corner, int(job.stamp_ns), True, "ok", "", z,
                          tuple(float(v) for v in res.field_deg), bool(res.caustic),
                          bool(res.converged), int(res.iterations), ms, res.solver,
-                         os.getpid())
+                         os.getpid(), uncertainty_nm=stamp_uncertainty_nm(res, s.solver),
+                         n_pairs=1)
+
+
+def stamp_uncertainty_nm(res: Any, solver: str) -> np.ndarray | None:
+    """(19,) one-sigma of a single stamp pair's terms (nm), from the donuts' S/N and the
+    noise model that the frame combination uses (``combination`` of config/selection.yaml,
+    fitted on simulations): ``sqrt((c_j q)^2 + f_j^2)``. None when it cannot be had."""
+    from .combination import pair_noise_scale, pair_sigma_nm
+
+    try:
+        cfg = _combination_config(solver)
+        q = pair_noise_scale(float(res.inputs["intra"].snr), float(res.inputs["extra"].snr))
+        sig = pair_sigma_nm(np.array([q]), cfg)[0]
+    except Exception:  # noqa: BLE001 - an uncertainty must not cost the estimate
+        return None
+    return sig if sig.shape == (len(_NOLL),) and np.all(np.isfinite(sig)) else None
+
+
+@functools.lru_cache(maxsize=4)
+def _combination_config(solver: str) -> Any:
+    from .selection import load_selection_config
+
+    return load_selection_config(None, solver=solver).combination
 
 
 def frame_outcome(res: Any) -> CornerOutcome:

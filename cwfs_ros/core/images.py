@@ -160,8 +160,8 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
         ``byte_order``: integers: the image as declared is :data:`BYTE_ORDER_RATIO` times
             rougher (mean absolute difference of neighbours) than with the other byte
             order; floats: its values spread over :data:`FLOAT_DECADES` more decades, or
-            over 1 % of them are subnormal while none are in the other order; either: it
-            holds non-finite values that the other order does not.
+            over 1 % of them are subnormal while none are in the other order (judged on
+            the finite pixels: a NaN is the estimator's ``non_finite``).
         ``saturated``: an integer pixel at the top of its type's range (the converter's full
             scale: the true value is unknown).
         ``wrapped``: integer counts that wrapped around instead of clipping: neighbours a
@@ -240,8 +240,7 @@ def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) ->
                                                                                      tiny)
         # Integer-valued floats read in the wrong order have zero low mantissa bytes in the
         # exponent: subnormal numbers, which no detector's image holds.
-        bad = (not fin_given or given > other + FLOAT_DECADES
-               or (sub_given > 0.01 and sub_other == 0.0))
+        bad = given > other + FLOAT_DECADES or (sub_given > 0.01 and sub_other == 0.0)
         what = (f"their values span {other:.3g} decades (interquartile) against {given:.3g}, "
                 f"{sub_other:.0%} subnormal against {sub_given:.0%}")
     else:
