@@ -287,12 +287,13 @@ class PairingBuffer:
         tol = self.tolerance_ns
         closed = self._closed[c].find(t, tol)
         if closed == "paired":
-            first = self._paired_identity(c, side, t)
-            if first is not None and first != rec.identity():
+            found = self._paired_lookup(c, t)
+            if found is not None and found[1][side] != rec.identity():
+                # Reported under the visit's stamp (the pair's), which its outputs carry.
                 return None, Rejection(
                     "conflicting_images", f"{where}: a different {side} image of that visit "
                     "was already paired: two exposures claim one stamp; the corner's visit is "
-                    "invalid", c, side, t)
+                    "invalid", c, side, found[0])
             return None, Rejection("duplicate", f"{where}: that visit was already paired",
                                    c, side, t)
         if closed is not None:
@@ -307,11 +308,12 @@ class PairingBuffer:
             # Neither image can be paired: drop the waiting one and close the visit.
             for r in waiting:
                 same.remove(r)
-            self._closed[c].add(t, "conflicting_images")
+            visit = waiting[0].stamp_ns  # the visit's stamp, which its outputs carry
+            self._closed[c].add(visit, "conflicting_images")
             return None, Rejection(
                 "conflicting_images", f"{where}: a different {side} image of that visit is "
                 "already waiting: two exposures claim one stamp; the corner's visit is "
-                "invalid", c, side, t)
+                "invalid", c, side, visit)
         if waiting:
             return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
                                    "already waiting for its partner", c, side, t)
@@ -336,16 +338,16 @@ class PairingBuffer:
 
     def was_paired(self, corner: str, stamp_ns: int) -> bool:
         """Whether that corner's visit was paired (still remembered)."""
-        return (corner in self._paired and
-                self._paired_identity(corner, "intra", stamp_ns) is not None)
+        return corner in self._paired and self._paired_lookup(corner, stamp_ns) is not None
 
-    def _paired_identity(self, corner: str, side: str, stamp_ns: int) -> bytes | None:
+    def _paired_lookup(self, corner: str, stamp_ns: int) -> tuple[int, dict[str, bytes]] | None:
+        """(the paired visit's stamp, its images' identities) within the tolerance, or None."""
         paired = self._paired[corner]
         if stamp_ns in paired:
-            return paired[stamp_ns][side]
+            return stamp_ns, paired[stamp_ns]
         for s, ids in paired.items():
             if abs(s - stamp_ns) <= self.tolerance_ns:
-                return ids[side]
+                return s, ids
         return None
 
     def pending_bytes(self) -> int:

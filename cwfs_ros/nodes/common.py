@@ -184,6 +184,7 @@ class RejectionCounter:
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         self.suppressed: Counter[str] = Counter()
+        self.logged: Counter[str] = Counter()
         self._logged_at: dict[str, float] = {}
         self.last_reason = ""
         self.last_message = ""
@@ -199,6 +200,7 @@ class RejectionCounter:
                 self.suppressed[reason] += 1
                 return False, 0
             self._logged_at[reason] = now
+            self.logged[reason] += 1
             n = self.suppressed.pop(reason, 0)
             return True, n
 
