@@ -42,6 +42,7 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.blur import MAX_SEEING_FWHM_ARCSEC
+from cwfs_ros.core.corner_pool import guard_pool_workers
 from cwfs_ros.core.visits import CORNERS
 from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
@@ -126,7 +127,8 @@ class CameraSimNode(Node):
         nominal = sim.perturbed_telescope(np.zeros(N_DOF), self.band)
         self.intrinsic_nm = self._truth_vector(nominal)
 
-        self._pool = make_render_pool(int(p("render_workers")))
+        # Its workers end with this process, even one killed outright (docs/reliability.md).
+        self._pool = guard_pool_workers(make_render_pool(int(p("render_workers"))))
         self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
                       "corrections_applied": 0, "corrections_ignored": 0}
         self.ignored = RejectionCounter()
