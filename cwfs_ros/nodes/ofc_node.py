@@ -246,6 +246,7 @@ class OfcNode(Node):
             return None  # the solver path names a layout problem
         with self._lock:
             self.guard.min_period_s = float(self._param("min_visit_period_s"))
+            self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
             rate = self.guard.check(stamp, z, valid)
         if not rate.ok:
             self.guard_counts.add(rate.reason, rate.message)
@@ -390,6 +391,9 @@ def _declare_guard_parameters(d) -> None:
         "Refuse, without a correction, a visit stamped less than this after the last one "
         "integrated [s]; 0 = off. The camera's 2 s readout keeps any two exposures apart by "
         "more; survey visits are ~30-40 s apart.", fp_range=(0.0, 3600.0)))
+    d("refuse_repeats", describe(
+        "Refuse, without a correction, a vector bit-identical to one already integrated (a "
+        "re-stamped copy); false only for benchmarks that replay one visit's images."))
     d("plausibility_margin_nm", describe(
         "Added to each term's physical bound (design + most the DoF strokes can add) [nm]: "
         "what the linear 50-DoF model and the estimator leave out.", fp_range=(0.0, 1e6)))

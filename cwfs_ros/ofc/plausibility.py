@@ -190,6 +190,7 @@ class VisitGuard:
         self._history = max(1, int(history))
         self._seen: dict[bytes, int] = {}
         self.last_stamp_ns: int | None = None
+        self.refuse_repeats = True
 
     @staticmethod
     def identity(z_nm: np.ndarray, corner_valid: np.ndarray) -> bytes:
@@ -203,7 +204,7 @@ class VisitGuard:
     def check(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray) -> Verdict:
         key = self.identity(z_nm, corner_valid)
         first = self._seen.get(key)
-        if first is not None:
+        if first is not None and self.refuse_repeats:
             return Verdict(False, "repeated_measurement", f"the vector is bit for bit the one "
                            f"of visit {first} ns, already integrated: one measurement gives "
                            "one correction")
