@@ -166,8 +166,10 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
             scale: the true value is unknown).
         ``wrapped``: integer counts that wrapped around instead of clipping: neighbours a
             jump of more than half the type's range apart, from its bottom to its top
-            quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side). 16- and 32-bit
-            integers only: 8 bits hold too few levels to tell a wrap from a sharp donut edge.
+            quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side), or a pixel in the
+            bottom quarter with 3 or 4 neighbours in the top one (a pixel or two wrapped
+            inside the light). 16- and 32-bit integers only: 8 bits hold too few levels to
+            tell a wrap from a sharp donut edge.
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
@@ -256,26 +258,31 @@ def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) ->
 
 def _check_wrap(image: np.ndarray, encoding: str, lo: float, span: float) -> None:
     u = (image - lo) / span  # position in the type's range, 0..1
-    low_px: set[int] = set()
-    high_px: set[int] = set()
-    w = image.shape[1]
-    for axis in (0, 1):
-        a = u[:-1, :] if axis == 0 else u[:, :-1]
-        b = u[1:, :] if axis == 0 else u[:, 1:]
-        hi_lo = (a >= 1 - WRAP_BAND) & (b < WRAP_BAND)
-        lo_hi = (a < WRAP_BAND) & (b >= 1 - WRAP_BAND)
-        if not (hi_lo.any() or lo_hi.any()):
-            continue
-        r, c = np.nonzero(hi_lo | lo_hi)
-        r2, c2 = (r + 1, c) if axis == 0 else (r, c + 1)
-        first_high = hi_lo[r, c]
-        high_px.update(np.where(first_high, r * w + c, r2 * w + c2).tolist())
-        low_px.update(np.where(first_high, r2 * w + c2, r * w + c).tolist())
-    if len(low_px) >= WRAP_MIN_PIXELS and len(high_px) >= WRAP_MIN_PIXELS:
+    low = u < WRAP_BAND
+    high = u >= 1.0 - WRAP_BAND
+    if not (low.any() and high.any()):
+        return
+    high_nb, low_nb = _neighbours(high), _neighbours(low)
+    low_step = int(np.count_nonzero(low & (high_nb > 0)))
+    high_step = int(np.count_nonzero(high & (low_nb > 0)))
+    # A pixel or two that wrapped sit inside the light: low, with 3 or 4 neighbours high
+    # (a hot pixel is the opposite: high among low ones).
+    enclosed = int(np.count_nonzero(low & (high_nb >= 3)))
+    if (low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed:
         raise ImageDecodeError(
-            "wrapped", f"{len(low_px)} pixel(s) sit in the bottom quarter of the {encoding} "
-            f"range next to {len(high_px)} in its top quarter: counts that wrapped around "
-            "instead of clipping; clip at the full scale")
+            "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {encoding} "
+            f"range next to {high_step} in its top quarter ({enclosed} surrounded by them): "
+            "counts that wrapped around instead of clipping; clip at the full scale")
+
+
+def _neighbours(mask: np.ndarray) -> np.ndarray:
+    """Number of each pixel's 4 neighbours in ``mask``."""
+    n = np.zeros(mask.shape, dtype=np.int8)
+    n[1:, :] += mask[:-1, :]
+    n[:-1, :] += mask[1:, :]
+    n[:, 1:] += mask[:, :-1]
+    n[:, :-1] += mask[:, 1:]
+    return n
 
 
 def _as_bytes(data: object) -> np.ndarray:
