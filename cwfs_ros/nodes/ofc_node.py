@@ -210,6 +210,7 @@ class OfcNode(Node):
         self.queue_gaps = SequenceGaps()
         self.guard_counts = RejectionCounter()
         self._bounds: P.PlausibilityBounds | None = None
+        self._plausibility_bounds()  # now, so that the first visit is fast
         self.foreign: list[str] = []
 
     def _on_vector_info(self, msg: WavefrontVector, info) -> None:
