@@ -4,9 +4,10 @@
   decode        genuine corner donuts (bench_input_checks' traced pairs: nominal and
                 perturbed telescopes, 1e4-1e7 photons, sky 0/10/50) as the node receives
                 them (32FC1, 64FC1, raw 16UC1 counts with a 1000 ADU bias, both byte
-                orders declared right): refused by the decoder (byte_order, wrapped,
-                saturated, bad_scale)? Then the same pixels with the byte order declared
-                wrong, and raw counts past 65535 wrapped: detected?
+                orders declared right; raw counts at 50-98 % of the full scale): refused
+                by the decoder (byte_order, wrapped, saturated, bad_scale)? Then the same
+                pixels with the byte order declared wrong, and raw counts past 65535
+                wrapped: detected?
   plateau       genuine donuts on a background of exactly 0 (no sky, raw photon counts):
                 refused as saturated by the plateau test that now applies to them?
   plausibility  true wavefronts (batoid) of telescope states drawn uniformly within the DoF
@@ -72,18 +73,32 @@ def bench_decode(pairs: list[dict], seeds: int, rng: np.random.Generator) -> Non
                             r = _decode(img, dt, True, False)
                             det_n[("byte_order", dt)] += 1
                             det[("byte_order", dt)] += r == "byte_order"
+                        # Genuine bright raw counts, 50-98 % of the full scale at the peak.
+                        scale = 65535 * rng.uniform(0.5, 0.98) / max(p[side].max(), 1e-12)
+                        br = np.minimum(rng.poisson(p[side] * scale + 1000.0), 65534)
+                        r = _decode(br.astype(float), "u2", False, False)
+                        total["u2 bright"] += 1
+                        genuine["u2 bright"] += r != ""
+                        if r:
+                            reasons[("u2 bright", r)] += 1
                         # Raw counts past the 16-bit full scale, wrapped.
                         scale = 65535 * rng.uniform(1.05, 3.0) / max(p[side].max(), 1e-12)
                         wr = (rng.poisson(p[side] * scale + 1000.0) % 65536).astype(float)
                         det_n[("wrapped", "u2")] += 1
-                        det[("wrapped", "u2")] += _decode(wr, "u2", False, False) == "wrapped"
+                        r = _decode(wr, "u2", False, False)
+                        det[("wrapped", "u2")] += r != ""
+                        if r != "wrapped":
+                            reasons[("wrapped u2 damaged", r or "accepted")] += 1
     for dt in sorted(total):
         print(f"  {dt}: {genuine[dt]}/{total[dt]} refused"
               + (f"  {dict((r, c) for (d, r), c in reasons.items() if d == dt)}"
                  if genuine[dt] else ""))
-    print("== decode: damaged -> detected / total")
+    print("== decode: damaged -> refused / total")
     for key in sorted(det_n):
         print(f"  {key[0]:10s} {key[1]}: {det[key]}/{det_n[key]}")
+    other = {r: c for (d, r), c in reasons.items() if d == "wrapped u2 damaged"}
+    if other:
+        print(f"  (wrapped images refused for another reason or accepted: {other})")
 
 
 def bench_plateau(pairs: list[dict], seeds: int, rng: np.random.Generator) -> None:

@@ -167,9 +167,9 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
         ``wrapped``: integer counts that wrapped around instead of clipping: neighbours a
             jump of more than half the type's range apart, from its bottom to its top
             quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side), or a pixel in the
-            bottom quarter with 3 or 4 neighbours in the top one (a pixel or two wrapped
-            inside the light). 16- and 32-bit integers only: 8 bits hold too few levels to
-            tell a wrap from a sharp donut edge.
+            bottom quarter with 2 or more of its 4 neighbours in the top one (a pixel or
+            two wrapped inside the light). 16- and 32-bit integers only: 8 bits hold too
+            few levels to tell a wrap from a sharp donut edge.
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
@@ -265,9 +265,9 @@ def _check_wrap(image: np.ndarray, encoding: str, lo: float, span: float) -> Non
     high_nb, low_nb = _neighbours(high), _neighbours(low)
     low_step = int(np.count_nonzero(low & (high_nb > 0)))
     high_step = int(np.count_nonzero(high & (low_nb > 0)))
-    # A pixel or two that wrapped sit inside the light: low, with 3 or 4 neighbours high
-    # (a hot pixel is the opposite: high among low ones).
-    enclosed = int(np.count_nonzero(low & (high_nb >= 3)))
+    # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
+    # neighbours high (a hot pixel is the opposite: high among low ones).
+    enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
     if (low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed:
         raise ImageDecodeError(
             "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {encoding} "
