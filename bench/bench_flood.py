@@ -139,7 +139,8 @@ def bench_frames(n: int, max_mb: float) -> None:
         def sample() -> None:
             d = probe.diag.get("wavefront_node", {})
             samples.append((time.monotonic() - t0, rss_mb(node.pid), d.get("pending_mb", "?"),
-                            d.get("rejected.memory_limit", "0"), d.get("images", "?")))
+                            d.get("rejected.memory_limit", "0"), d.get("images", "?"),
+                            d.get("queue_dropped.R00.intra", "0")))
 
         for k in range(n):  # distinct stamps: each its own visit, none paired
             pub.publish(image_msg(frame, stamp0 + k * 10**9))
@@ -150,13 +151,15 @@ def bench_frames(n: int, max_mb: float) -> None:
         while time.monotonic() < end:
             sample()
             time.sleep(0.5)
-        print("  t [s]   resident [MB]   pending_mb   memory_limit drops   images taken")
-        for t, r, p, m, i in samples:
-            print(f"  {t:5.1f}   {r:13.0f}   {p:>10}   {m:>18}   {i:>12}")
+        print("  t [s]   resident [MB]   pending_mb   memory_limit drops   images taken"
+              "   never taken (queue)")
+        for t, r, p, m, i, q in samples:
+            print(f"  {t:5.1f}   {r:13.0f}   {p:>10}   {m:>18}   {i:>12}   {q:>19}")
         d = probe.diag.get("wavefront_node", {})
         lost = {k: v for k, v in d.items() if k.startswith("messages_lost")}
         print(f"  sent {sent}; node took {d.get('images')}; dropped for memory "
-              f"{d.get('rejected.memory_limit', '0')}; middleware losses reported {lost or 0}; "
+              f"{d.get('rejected.memory_limit', '0')}; never taken (sequence gaps) "
+              f"{d.get('queue_dropped.R00.intra', '0')}; middleware losses reported {lost or 0}; "
               f"peak resident {max(s[1] for s in samples):.0f} MB (ready {base:.0f} MB)")
     finally:
         probe.close()

@@ -193,3 +193,36 @@ def test_other_publishers_and_long_frame_id(graph, ros_context):
         "foreign_publishers"], 10, "the tester named")
     (res,) = wf.set_parameters([Parameter("frame_id", value="f" * 1_000_000)])
     assert not res.successful and "at most 256" in res.reason
+
+
+def test_images_never_taken_are_counted(graph):
+    """A burst of images faster than the node takes them: those its queue dropped (no DDS
+    event reports them) are counted from the sequence numbers; taken + counted = sent."""
+    from conftest import wait_for
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    wf, tester, _, _, _ = graph(max_pending_mb=4096.0, visit_timeout_s=60.0)
+    pub = tester.create_publisher(Image, "aos/wfs/R00/intra/image", QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE))
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    frame = np.random.default_rng(9).normal(100.0, 5.0, (160, 160)).astype(np.float32)
+    pub.publish(image_msg(frame, T))
+    wait_for(lambda: wf.stats["images"] == 1, 10, "the first frame taken")
+    orig = wf._on_image
+
+    def busy(msg, corner, side):  # a node busy elsewhere: 50 ms an image
+        time.sleep(0.05)
+        orig(msg, corner, side)
+
+    wf._on_image = busy
+    n = 60
+    for k in range(1, n + 1):
+        pub.publish(image_msg(frame, T + k * SEC))
+    gaps = wf.image_gaps[("R00", "intra")]
+    wait_for(lambda: wf.stats["images"] - 1 + gaps.dropped >= n, 30, "all accounted for")
+    time.sleep(0.5)
+    assert gaps.dropped > 0
+    assert wf.stats["images"] - 1 + gaps.dropped == n
+    kv = {x.key: x.value for x in wf.diagnostics().values}
+    assert kv["queue_dropped.R00.intra"] == str(gaps.dropped)

@@ -81,6 +81,7 @@ from .common import (
     WARN,
     QosEventMonitor,
     RejectionCounter,
+    SequenceGaps,
     bundled_declarer,
     describe,
     diagnostic_status,
@@ -171,6 +172,8 @@ class WavefrontNode(Node):
         # their estimate is published invalid (bounded, oldest forgotten first).
         self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
         self.foreign: list[str] = []
+        # Images never taken (the queue overflowed), per topic, from sequence numbers.
+        self.image_gaps = {(c, s): SequenceGaps() for c in self.corners for s in SIDES}
 
         img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
         # Worker processes, warmed up in the background.
@@ -192,8 +195,10 @@ class WavefrontNode(Node):
         for c in self.corners:
             for s in SIDES:
                 topic = image_topic(c, s)
+                cb = self._image_callback(c, s)
+                # Two arguments: rclpy passes the message info (its sequence numbers).
                 self._subs.append(self.create_subscription(
-                    Image, topic, self._image_callback(c, s), img_qos,
+                    Image, topic, lambda msg, info, cb=cb: cb(msg, info), img_qos,
                     callback_group=self._cb_images,
                     event_callbacks=self.qos_events.subscription_callbacks(topic)))
         if self.assemble:
@@ -420,8 +425,14 @@ class WavefrontNode(Node):
 
     # ------------------------------------------------------------------ images
     def _image_callback(self, corner: str, side: str):
-        def cb(msg: Image) -> None:
+        def cb(msg: Image, info=None) -> None:
             try:
+                gap = self.image_gaps[(corner, side)].note(info) if info is not None else 0
+                if gap:
+                    self._reject(Rejection(
+                        "queue_dropped", f"{gap} {side} image(s) of {corner} never taken: "
+                        "the queue overflowed (a burst faster than the node takes them)",
+                        corner, side), warn=True)
                 self._on_image(msg, corner, side)
             except Exception as exc:  # noqa: BLE001 - never let a message kill the node
                 self._reject(Rejection("internal_error", f"{corner} {side} image: "
@@ -736,6 +747,8 @@ class WavefrontNode(Node):
                   ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
                   ("max_pending_mb", self._param("max_pending_mb")),
                   ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
         values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
         values += [(f"status.{c}", v) for c, v in sorted(last.items())]
         values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
