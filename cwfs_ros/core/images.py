@@ -122,8 +122,9 @@ def decode_checked(data: bytes | bytearray | memoryview | np.ndarray | list[int]
                        is_bigendian=is_bigendian)
     swapped = None
     if np.dtype(ENCODINGS[str(encoding)]).itemsize > 1:
-        swapped = decode_image(data, height=height, width=width, encoding=encoding, step=step,
-                               is_bigendian=not is_bigendian)
+        with np.errstate(all="ignore"):  # the wrong order may hold NaN, Inf, subnormals
+            swapped = decode_image(data, height=height, width=width, encoding=encoding,
+                                   step=step, is_bigendian=not is_bigendian)
     inspect_pixels(out, str(encoding), swapped=swapped)
     return out
 

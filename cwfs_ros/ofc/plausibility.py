@@ -112,7 +112,8 @@ def _corner_problem(k: int, z: np.ndarray, unc: np.ndarray | None, n_pairs: int 
     name = CORNERS[k]
     if not np.all(np.isfinite(zc)):
         return None  # the layout and finiteness checks of the solver name that
-    rms = float(np.sqrt(np.mean(zc * zc)))
+    with np.errstate(over="ignore"):  # 1e308 squared: inf, which is not small
+        rms = float(np.sqrt(np.mean(zc * zc)))
     if rms < min_rms_nm:
         return Verdict(False, "no_measurement", f"corner {name} is flagged valid but its 19 "
                        f"terms have an rms of {rms:.3g} nm (< {min_rms_nm:g} nm): no "
