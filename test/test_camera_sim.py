@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from cwfs_ros.core.control import load_dof_spec  # noqa: E402
 from cwfs_ros.core.visits import CORNERS  # noqa: E402
 from cwfs_ros.nodes.camera_sim_node import RIGID_SCALE, CameraSimNode  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
@@ -90,8 +91,8 @@ def camera(ros_domain):
         close()
 
 
-def correction(dof, *, valid=True, dry_run=False, status="ok"):
-    return dof_correction_msg(stamp_ns=1, frame_id="telescope", dof=np.asarray(dof, float),
+def correction(dof, *, stamp_ns=1, valid=True, dry_run=False, status="ok"):
+    return dof_correction_msg(stamp_ns=stamp_ns, frame_id="telescope", dof=np.asarray(dof, float),
                               dof_total=np.asarray(dof, float), valid=valid, status=status,
                               wavefront_rms_nm=1.0, predicted_residual_rms_nm=0.5,
                               dry_run=dry_run, n_modes_used=12)
@@ -152,27 +153,37 @@ def test_visit_images_and_truth(camera):
              5, "diagnostics reporting the true wavefront error")
 
 
+def visit(t) -> int:
+    """Render one visit; its stamp (a correction is applied only for a visit published)."""
+    n = len(t.truth)
+    assert t.call_trigger().success
+    wait_for(lambda: len(t.truth) > n, 60, "a rendered visit")
+    return stamp_to_ns(t.truth[-1].header.stamp)
+
+
 def test_corrections_change_the_state(camera):
     node, t = camera
     applied = lambda n: node.stats["corrections_applied"] == n  # noqa: E731
     ignored = lambda n: node.stats["corrections_ignored"] == n  # noqa: E731
     before = node.dof_state
-    step = np.linspace(-1.0, 1.0, 50) * 0.1
-    t.pub.publish(correction(step))
+    s1 = visit(t)
+    # Within the step limits (dof.yaml's max_step).
+    step = np.linspace(-1.0, 1.0, 50) * 0.5 * load_dof_spec().max_step
+    t.pub.publish(correction(step, stamp_ns=s1))
     wait_for(lambda: applied(1), 5, "a valid correction applied")
     np.testing.assert_array_equal(node.dof_state, before + step)
 
     state = node.dof_state
-    t.pub.publish(correction(step, valid=False, status="refused: test"))
+    t.pub.publish(correction(step, stamp_ns=s1, valid=False, status="refused: test"))
     wait_for(lambda: ignored(1), 5, "invalid correction ignored")
-    t.pub.publish(correction(step, dry_run=True))
+    t.pub.publish(correction(step, stamp_ns=s1, dry_run=True))
     wait_for(lambda: ignored(2), 5, "dry-run correction ignored")
     bad = step.copy()
     bad[3] = np.nan
-    t.pub.publish(correction(bad))
+    t.pub.publish(correction(bad, stamp_ns=s1))
     wait_for(lambda: ignored(3), 5, "non-finite correction ignored")
     node.set_parameters([Parameter("apply_corrections", value=False)])
-    t.pub.publish(correction(step))
+    t.pub.publish(correction(step, stamp_ns=s1))
     wait_for(lambda: ignored(4), 5, "correction ignored with apply_corrections false")
     assert node.stats["corrections_applied"] == 1
     np.testing.assert_array_equal(node.dof_state, state)
@@ -180,19 +191,21 @@ def test_corrections_change_the_state(camera):
 
     # back on: the next rendered visit uses the corrected state
     node.set_parameters([Parameter("apply_corrections", value=True)])
-    t.pub.publish(correction(step))
+    s2 = visit(t)
+    np.testing.assert_array_equal(t.truth[-1].dof_state, state)
+    t.pub.publish(correction(step, stamp_ns=s2))
     wait_for(lambda: applied(2), 5, "correction applied again")
     np.testing.assert_array_equal(node.dof_state, state + step)
-    assert t.call_trigger().success
-    wait_for(lambda: t.truth, 60, "a rendered visit")
-    np.testing.assert_array_equal(t.truth[0].dof_state, state + step)
+    visit(t)
+    np.testing.assert_array_equal(t.truth[-1].dof_state, state + step)
 
 
 def test_actuator_noise_scales_each_dof(ros_domain):
-    node, t, close = make_system(ros_domain, actuator_noise=0.1)
+    node, t, close = make_system(ros_domain, actuator_noise=0.1,
+                                 correction_max_step_scale=0.0)  # no step limit
     try:
         step = np.full(50, 2.0)
-        t.pub.publish(correction(step))
+        t.pub.publish(correction(step, stamp_ns=visit(t)))
         wait_for(lambda: node.stats["corrections_applied"] == 1, 5, "correction applied")
         d = node.dof_state
         assert np.all(d != step) and np.all(np.abs(d / step - 1.0) < 0.6)

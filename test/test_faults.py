@@ -113,10 +113,10 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
             pubs[k].publish(m)
 
     keys = [(c, s) for c in CORNERS for s in ("intra", "extra")]
-    # Stamps a camera would give (ofc_node refuses visits stamped beyond max_future_s ahead
-    # of its clock): the test's start, and 40 s later.
-    stamp_a = (time.time_ns() // SEC) * SEC
-    stamp_b = stamp_a + 40 * SEC
+    # Stamps a camera would give (the nodes refuse images and visits stamped beyond their
+    # max_future_s ahead of the clock): two visits 40 s apart, the second at the test's start.
+    stamp_b = (time.time_ns() // SEC) * SEC
+    stamp_a = stamp_b - 40 * SEC
     proc = _start_node(ros_domain)
     try:
         wait_for(lambda: bool(ready_at), 90, "the first wavefront_node to be ready")

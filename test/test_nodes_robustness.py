@@ -33,6 +33,7 @@ from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 # more than max_future_s ahead of its clock).
 T = 1_750_000_000_000_000_000
 SEC = 1_000_000_000
+VISIT = 40 * SEC  # a survey visit's period (ofc_node refuses visits closer than 2 s)
 
 
 from conftest import spin_thread, wait_for  # noqa: E402
@@ -186,7 +187,12 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     x[[0, 5, 9]] = [15.0, -20.0, 0.004]
     y = ref.intrinsic_nm + sm.matrix_nm @ x
 
-    def send(stamp, z=y, valid=(True,) * 4, corners=("R00", "R04", "R40", "R44")):
+    rng = np.random.default_rng(0)
+
+    def send(stamp, z=None, valid=(True,) * 4, corners=("R00", "R04", "R40", "R44")):
+        # Each visit its own measurement (a bit-identical vector is a repeat, refused), the
+        # visits VISIT apart (closer ones are refused as too soon).
+        z = y + rng.normal(0.0, 1e-6, y.shape) if z is None else z
         m = WavefrontVector()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
         m.zernikes_nm = np.asarray(z, dtype=float)
@@ -197,53 +203,53 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
         wait_for(lambda: len(of(out, stamp)) > seen, 5, f"correction {stamp}")
         return of(out, stamp)[-1]
 
-    d1 = send(T + 1)
+    d1 = send(T + 1 * VISIT, z=y)
     expected = ref.step(y)
     assert d1.valid and d1.status == "ok"
     np.testing.assert_allclose(d1.dof, expected.dof, rtol=1e-9, atol=1e-12)
     assert d1.wavefront_rms_nm == pytest.approx(expected.wavefront_rms_nm)
     assert d1.predicted_residual_rms_nm == pytest.approx(expected.predicted_residual_rms_nm)
-    d2 = send(T + 2)
+    d2 = send(T + 2 * VISIT)
     np.testing.assert_allclose(d2.dof_total, np.asarray(d1.dof) + np.asarray(d2.dof))
 
     # dry run: computed and flagged, the state does not advance
     assert ofc.set_parameters([Parameter("dry_run", value=True)])[0].successful
-    d3 = send(T + 3)
-    d4 = send(T + 4)
+    d3 = send(T + 3 * VISIT)
+    d4 = send(T + 4 * VISIT)
     assert d3.dry_run and d4.dry_run and d3.valid
-    np.testing.assert_allclose(d3.dof, d4.dof)
+    np.testing.assert_allclose(d3.dof, d4.dof, rtol=1e-7, atol=1e-9)  # 1e-6 nm apart
     np.testing.assert_allclose(d4.dof_total, np.asarray(d2.dof_total) + np.asarray(d4.dof))
     assert ofc.set_parameters([Parameter("dry_run", value=False)])[0].successful
 
     # refusals: invalid corner, NaN in a valid corner, bad layout
-    bad = send(T + 5, valid=(True, True, False, True))
+    bad = send(T + 5 * VISIT, valid=(True, True, False, True))
     assert not bad.valid and bad.status.startswith("corner_invalid") and "R40" in bad.status
     z = y.copy()
     z[3] = np.nan
-    assert send(T + 6, z=z).status.startswith("non_finite")
-    lay = send(T + 7, corners=("R04", "R00", "R40", "R44"))
+    assert send(T + 6 * VISIT, z=z).status.startswith("non_finite")
+    lay = send(T + 7 * VISIT, corners=("R04", "R00", "R40", "R44"))
     assert not lay.valid and lay.status.startswith("bad_layout")
     np.testing.assert_allclose(lay.dof_total, d2.dof_total)  # refusals leave the state alone
     assert ofc.set_parameters([Parameter("allow_partial", value=True)])[0].successful
-    assert send(T + 8, valid=(True, True, False, True)).valid
+    assert send(T + 8 * VISIT, valid=(True, True, False, True)).valid
 
     # visit order: a repeated, older or unset stamp is never applied, nor one far ahead of
     # the clock; nor a finite but absurd wavefront (it overflowed the solve into a NaN state)
     before = ofc.solver.state()
-    again = send(T + 8)
+    again = send(T + 8 * VISIT)
     assert not again.valid and again.status.startswith("stale_visit") and "again" in again.status
-    older = send(T + 4)
+    older = send(T + 4 * VISIT)
     assert not older.valid and older.status.startswith("stale_visit"), older.status
     unset = send(0)
     assert not unset.valid and unset.status.startswith("no_stamp")
     ahead = send(time.time_ns() + 3600 * SEC)
     assert not ahead.valid and ahead.status.startswith("future_stamp"), ahead.status
-    huge = send(T + 10, z=np.full(76, 1.7e308))
+    huge = send(T + 10 * VISIT, z=np.full(76, 1.7e308))
     assert not huge.valid and huge.status.startswith("implausible_wavefront"), huge.status
     after = ofc.solver.state()
     np.testing.assert_array_equal(after[0], before[0])  # none of them moved the state
     assert after[2:] == before[2:] and np.all(np.isfinite(after[0]))
-    assert send(T + 11).valid  # and the loop goes on
+    assert send(T + 11 * VISIT).valid  # and the loop goes on
     tags = dict(ofc.refused.key_values())
     for tag in ("stale_visit", "no_stamp", "future_stamp", "implausible_wavefront"):
         assert any(tag in k for k in tags), (tag, tags)
@@ -273,7 +279,7 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     before = ofc.solver
     assert ofc.set_parameters([Parameter("matrix_source", value="ts_ofc")])[0].successful
     assert ofc.solver is not before and ofc.solver.sensitivity.source == "ts_ofc"
-    d9 = send(T + 9)
+    d9 = send(T + 9 * VISIT)
     assert d9.valid  # the ts_ofc matrix (converted) also closes the loop on this vector
     assert d9.predicted_residual_rms_nm < d9.wavefront_rms_nm
 

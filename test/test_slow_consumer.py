@@ -89,9 +89,11 @@ def test_slow_subscriber_does_not_delay_the_controller(ros_context, ros_domain, 
         sent: dict[int, float] = {}
         for k in range(N):
             m = WavefrontVector()
-            stamp = (2000 + k) * SEC
+            # Visits 40 s apart, each its own measurement (ofc_node refuses visits closer
+            # than min_visit_period_s and bit-identical repeats without a correction).
+            stamp = (2000 + 40 * k) * SEC
             m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
-            m.zernikes_nm = np.asarray(y, dtype=float)
+            m.zernikes_nm = np.asarray(y, dtype=float) + 1e-3 * k
             m.corner_valid = [True] * 4
             m.corners = ["R00", "R04", "R40", "R44"]
             pub.publish(m)

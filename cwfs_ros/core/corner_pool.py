@@ -18,6 +18,7 @@ images and configuration come back as an invalid outcome whose ``status`` names 
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 import os
 import threading
@@ -134,8 +135,9 @@ class CornerOutcome:
         reason: the tag alone (``""`` when valid), for counting.
         field_deg: field of the estimate (mid-point of the two half-chips), degrees.
         compute_ms: wall time spent in the worker, ms.
-        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated (a
-            single stamp pair); frames give it from the pairs' combination.
+        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated;
+            a stamp pair gives the calibrated noise model's (:func:`stamp_uncertainty_nm`),
+            frames the pairs' combination's.
         n_pairs: donut pairs combined (1 for a stamp pair; 0 when none was usable).
     """
 
@@ -219,7 +221,30 @@ def run_corner_job(job: CornerJob) -> CornerOutcome:
     return CornerOutcome(job.corner, int(job.stamp_ns), True, "ok", "", z,
                          tuple(float(v) for v in res.field_deg), bool(res.caustic),
                          bool(res.converged), int(res.iterations), ms, res.solver,
-                         os.getpid())
+                         os.getpid(), uncertainty_nm=stamp_uncertainty_nm(res, s.solver),
+                         n_pairs=1)
+
+
+def stamp_uncertainty_nm(res: Any, solver: str) -> np.ndarray | None:
+    """(19,) one-sigma of a single stamp pair's terms (nm), from the donuts' S/N and the
+    noise model that the frame combination uses (``combination`` of config/selection.yaml,
+    fitted on simulations): ``sqrt((c_j q)^2 + f_j^2)``. None when it cannot be had."""
+    from .combination import pair_noise_scale, pair_sigma_nm
+
+    try:
+        cfg = _combination_config(solver)
+        q = pair_noise_scale(float(res.inputs["intra"].snr), float(res.inputs["extra"].snr))
+        sig = pair_sigma_nm(np.array([q]), cfg)[0]
+    except Exception:  # noqa: BLE001 - an uncertainty must not cost the estimate
+        return None
+    return sig if sig.shape == (len(_NOLL),) and np.all(np.isfinite(sig)) else None
+
+
+@functools.lru_cache(maxsize=4)
+def _combination_config(solver: str) -> Any:
+    from .selection import load_selection_config
+
+    return load_selection_config(None, solver=solver).combination
 
 
 def frame_outcome(res: Any) -> CornerOutcome:
@@ -297,15 +322,81 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
                 "error": f"{type(exc).__name__}: {exc}"}
 
 
-def _worker_init() -> None:
+def _worker_init(owner_pid: int = 0) -> None:
     """Worker start-up: one BLAS/OpenMP thread per worker (the pool is the parallelism; n
-    workers x n BLAS threads would oversubscribe the cores)."""
+    workers x n BLAS threads would oversubscribe the cores), and :func:`die_with_owner`."""
+    die_with_owner(owner_pid)
     try:
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
     except Exception:  # noqa: BLE001, S110 - optional optimisation
         pass
+
+
+# How often a worker checks that the process owning its pool is alive [s].
+OWNER_POLL_S = 0.5
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_owner(owner_pid: int) -> None:
+    """Make this worker process end with the process that owns its pool (run in the worker).
+
+    A node killed outright (SIGKILL, the OOM killer) runs no clean-up, and its workers would
+    live on holding their memory. Two guards: ``PR_SET_PDEATHSIG`` (Linux) sends SIGKILL when
+    the worker's parent dies (the fork server, which exits with the node); a daemon thread
+    exits the worker once ``owner_pid`` is gone, polled every :data:`OWNER_POLL_S` s (the
+    parent of a fork-server worker is not the node). SIGINT is ignored: Ctrl-C reaches the
+    whole process group, and the node, not each worker, shuts the pool down (without the
+    workers' KeyboardInterrupt tracebacks).
+    """
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except (ValueError, OSError):  # not the main thread: leave it
+        pass
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except Exception:  # noqa: BLE001, S110 - not Linux: the watchdog alone
+        pass
+    if owner_pid > 0:
+        threading.Thread(target=_watch_owner, args=(int(owner_pid),), daemon=True,
+                         name="owner_watchdog").start()
+
+
+def _watch_owner(owner_pid: int) -> None:
+    while True:
+        time.sleep(OWNER_POLL_S)
+        try:
+            os.kill(owner_pid, 0)
+        except ProcessLookupError:
+            os._exit(0)
+        except OSError:  # EPERM: the pid exists (reused by another user's process)
+            os._exit(0)
+
+
+def guard_pool_workers(pool: Any) -> Any:
+    """Give an existing ``ProcessPoolExecutor`` (whose workers are not started yet) the
+    :func:`die_with_owner` start-up, chained before its own initializer. Returns ``pool``.
+
+    For pools built elsewhere (the camera simulator's render pool); relies on CPython's
+    ``_initializer`` / ``_initargs`` attributes and leaves a pool without them unchanged.
+    """
+    if pool is None or not hasattr(pool, "_initializer"):
+        return pool
+    pool._initargs = (os.getpid(), pool._initializer, tuple(pool._initargs or ()))
+    pool._initializer = _chained_init
+    return pool
+
+
+def _chained_init(owner_pid: int, inner: Callable | None, args: tuple) -> None:
+    die_with_owner(owner_pid)
+    if inner is not None:
+        inner(*args)
 
 
 def _mp_context(method: str | None) -> mp.context.BaseContext:
@@ -352,7 +443,7 @@ class CornerPool:
             ex = self._slots[i]
             if ex is None:
                 ex = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx,
-                                         initializer=_worker_init)
+                                         initializer=_worker_init, initargs=(os.getpid(),))
                 self._slots[i] = ex
             return ex
 

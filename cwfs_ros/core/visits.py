@@ -4,8 +4,8 @@ Two small state machines, driven by the node with explicit ``now`` times (monoto
 so that they can be tested without a clock or a middleware:
 
 * :class:`PairingBuffer` pairs the intra- and extra-focal images of each corner by their
-  exposure stamp (integer nanoseconds, equal within a tolerance). It reports duplicate, late
-  and (after a timeout) unpaired images as :class:`Rejection` records.
+  exposure stamp (integer nanoseconds, equal within a tolerance). It reports duplicate, late,
+  conflicting and (after a timeout) unpaired images as :class:`Rejection` records.
 * :func:`image_record_from_msg` decodes a ``sensor_msgs/Image``-shaped object (an rclpy
   message, or one deserialised from a bag by rosbags: both carry the same field names) into an
   :class:`ImageRecord`, so the live node and the offline replay decode identically.
@@ -17,10 +17,22 @@ so that they can be tested without a clock or a middleware:
 
 Visit identity: a visit is a stamp. A later record whose stamp is within ``tolerance_ns`` of a
 pending or recently closed visit's stamp belongs to that visit.
+
+One exposure, one stamp: two images of the same corner, side and visit are *the same* when
+their messages are byte-identical in the fields that make the picture (encoding, height,
+width, step, is_bigendian and every data byte: :attr:`ImageRecord.digest`); a re-sent copy is
+a ``duplicate`` and ignored. Anything else is ``conflicting_images``: two exposures claim one
+stamp, and nothing can tell which of them the partner image belongs to, so the corner's visit
+is invalid, never a pair. A conflict found while the first image waits for its partner closes
+the corner's visit at once; one found after the pair was formed is reported by
+:meth:`PairingBuffer.add` and the node invalidates the corner's result (before it is published,
+or in the :class:`VisitAssembler` with :meth:`VisitAssembler.invalidate` until the visit is
+emitted).
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -28,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from .images import decode_image
+from .images import decode_checked
 
 __all__ = [
     "CORNERS",
@@ -45,6 +57,7 @@ __all__ = [
     "format_stamp",
     "image_record_from_msg",
     "load_corner_fields",
+    "message_digest",
     "stamp_to_ns",
     "zernikes_by_noll",
 ]
@@ -94,6 +107,8 @@ class ImageRecord:
         error: ``None``, or the ``"<tag>: <explanation>"`` of a decoding failure; the pair is
             still formed so that the corner's result can say what was wrong.
         received: monotonic receive time in seconds.
+        digest: identity of the picture (see the module docstring: equal digests, same
+            picture); empty when not computed, then the decoded pixels decide.
     """
 
     corner: str
@@ -103,6 +118,33 @@ class ImageRecord:
     error: str | None = None
     frame_id: str = ""
     received: float = 0.0
+    digest: bytes = b""
+
+    def identity(self) -> bytes:
+        """:attr:`digest`, or one of the decoded pixels (or the error) when it is unset."""
+        if self.digest:
+            return self.digest
+        h = hashlib.blake2b(digest_size=16)
+        if self.image is not None:
+            a = np.ascontiguousarray(self.image)
+            h.update(repr((a.shape, a.dtype.str)).encode())
+            h.update(a.tobytes())
+        else:
+            h.update(str(self.error).encode())
+        return h.digest()
+
+
+def message_digest(msg: Any) -> bytes:
+    """Identity of an Image message's picture: encoding, size, layout and data bytes."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((str(msg.encoding), int(msg.height), int(msg.width), int(msg.step),
+                   bool(msg.is_bigendian))).encode())
+    data = msg.data
+    try:
+        h.update(memoryview(data))
+    except TypeError:
+        h.update(bytes(bytearray(data)))
+    return h.digest()
 
 
 def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> ImageRecord:
@@ -118,7 +160,8 @@ def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> 
     rec = ImageRecord(corner, side, stamp_to_ns(msg.header.stamp),
                       frame_id=str(msg.header.frame_id), received=float(received))
     try:
-        rec.image = decode_image(msg.data, height=msg.height, width=msg.width,
+        rec.digest = message_digest(msg)
+        rec.image = decode_checked(msg.data, height=msg.height, width=msg.width,
                                  encoding=msg.encoding, step=msg.step,
                                  is_bigendian=bool(msg.is_bigendian))
     except ValueError as exc:  # ImageDecodeError is a ValueError
@@ -221,6 +264,10 @@ class PairingBuffer:
         self._pending: dict[str, dict[str, list[ImageRecord]]] = {
             c: {s: [] for s in SIDES} for c in self.corners}
         self._closed = {c: _Closed(history) for c in self.corners}
+        # Identities of the images of the visits paired last, per corner: {stamp: {side: id}}.
+        self._paired: dict[str, OrderedDict[int, dict[str, bytes]]] = {
+            c: OrderedDict() for c in self.corners}
+        self._history = max(1, int(history))
 
     def pending_count(self) -> int:
         return sum(len(v) for sides in self._pending.values() for v in sides.values())
@@ -240,6 +287,13 @@ class PairingBuffer:
         tol = self.tolerance_ns
         closed = self._closed[c].find(t, tol)
         if closed == "paired":
+            found = self._paired_lookup(c, t)
+            if found is not None and found[1][side] != rec.identity():
+                # Reported under the visit's stamp (the pair's), which its outputs carry.
+                return None, Rejection(
+                    "conflicting_images", f"{where}: a different {side} image of that visit "
+                    "was already paired: two exposures claim one stamp; the corner's visit is "
+                    "invalid", c, side, found[0])
             return None, Rejection("duplicate", f"{where}: that visit was already paired",
                                    c, side, t)
         if closed is not None:
@@ -249,7 +303,18 @@ class PairingBuffer:
         if notice is not None and notice.reason == "late":
             return None, notice
         same = self._pending[c][side]
-        if any(abs(r.stamp_ns - t) <= tol for r in same):
+        waiting = [r for r in same if abs(r.stamp_ns - t) <= tol]
+        if waiting and any(r.identity() != rec.identity() for r in waiting):
+            # Neither image can be paired: drop the waiting one and close the visit.
+            for r in waiting:
+                same.remove(r)
+            visit = waiting[0].stamp_ns  # the visit's stamp, which its outputs carry
+            self._closed[c].add(visit, "conflicting_images")
+            return None, Rejection(
+                "conflicting_images", f"{where}: a different {side} image of that visit is "
+                "already waiting: two exposures claim one stamp; the corner's visit is "
+                "invalid", c, side, visit)
+        if waiting:
             return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
                                    "already waiting for its partner", c, side, t)
         other_side = "extra" if side == "intra" else "intra"
@@ -265,7 +330,48 @@ class PairingBuffer:
         others.remove(match)
         intra, extra = (rec, match) if side == "intra" else (match, rec)
         self._closed[c].add(intra.stamp_ns, "paired")
+        paired = self._paired[c]
+        paired[intra.stamp_ns] = {"intra": intra.identity(), "extra": extra.identity()}
+        while len(paired) > self._history:
+            paired.popitem(last=False)
         return PairReady(c, intra.stamp_ns, intra, extra), notice
+
+    def was_paired(self, corner: str, stamp_ns: int) -> bool:
+        """Whether that corner's visit was paired (still remembered)."""
+        return corner in self._paired and self._paired_lookup(corner, stamp_ns) is not None
+
+    def _paired_lookup(self, corner: str, stamp_ns: int) -> tuple[int, dict[str, bytes]] | None:
+        """(the paired visit's stamp, its images' identities) within the tolerance, or None."""
+        paired = self._paired[corner]
+        if stamp_ns in paired:
+            return stamp_ns, paired[stamp_ns]
+        for s, ids in paired.items():
+            if abs(s - stamp_ns) <= self.tolerance_ns:
+                return s, ids
+        return None
+
+    def pending_bytes(self) -> int:
+        """Bytes held by the decoded images waiting for their partners."""
+        return sum(r.image.nbytes for sides in self._pending.values()
+                   for v in sides.values() for r in v if r.image is not None)
+
+    def drop_oldest(self) -> Rejection | None:
+        """Drop the image that has waited longest (its visit closes), to bound memory."""
+        oldest = None
+        for sides in self._pending.values():
+            for v in sides.values():
+                for r in v:
+                    if oldest is None or r.received < oldest.received:
+                        oldest = r
+        if oldest is None:
+            return None
+        self._pending[oldest.corner][oldest.side].remove(oldest)
+        self._closed[oldest.corner].add(oldest.stamp_ns, "dropped: memory limit")
+        other = "extra" if oldest.side == "intra" else "intra"
+        return Rejection("memory_limit", f"{oldest.side} image of {oldest.corner} at stamp "
+                         f"{format_stamp(oldest.stamp_ns)} dropped before its {other} image "
+                         "came: pending images reached the memory limit (oldest first)",
+                         oldest.corner, oldest.side, oldest.stamp_ns)
 
     def close(self, corner: str, stamp_ns: int, how: str) -> list[Rejection]:
         """Close a visit of a corner from outside (e.g. the assembler timed it out).
@@ -317,6 +423,8 @@ class CornerEntry:
 
     Attributes:
         zernikes_nm: Z4..Z22 (19 values, nm) when ``valid``; ignored otherwise.
+        uncertainty_nm: (19,) one-sigma per term (nm), or None when not reported.
+        n_pairs: donut pairs behind the estimate (0: not reported or none).
     """
 
     corner: str
@@ -324,6 +432,8 @@ class CornerEntry:
     zernikes_nm: np.ndarray | None
     valid: bool
     status: str
+    uncertainty_nm: np.ndarray | None = None
+    n_pairs: int = 0
 
 
 @dataclass(frozen=True)
@@ -336,6 +446,9 @@ class VisitVector:
         statuses: per-corner status text (``"ok"``, the corner's reason, or ``"missing"``).
         status: ``"ok"`` when every corner is valid, else a summary naming the bad corners.
         complete: all four corners reported before the timeout.
+        uncertainty_nm: (76,) one-sigma per term of the valid corners (nm); 0 = not reported
+            (the ``WavefrontVector`` convention).
+        n_pairs: (4,) donut pairs behind each valid corner (0: not reported, or invalid).
     """
 
     stamp_ns: int
@@ -345,6 +458,8 @@ class VisitVector:
     status: str
     complete: bool
     corners: tuple[str, ...] = CORNERS
+    uncertainty_nm: np.ndarray = field(default_factory=lambda: np.zeros(len(CORNERS) * N_ZK))
+    n_pairs: tuple[int, ...] = (0,) * len(CORNERS)
 
 
 @dataclass
@@ -413,6 +528,24 @@ class VisitAssembler:
             return self._emit(visit, complete=True), notice
         return None, notice
 
+    def invalidate(self, corner: str, stamp_ns: int, status: str) -> tuple[bool,
+                                                                          VisitVector | None]:
+        """Mark a corner of a pending visit invalid (``status`` says why), whether its
+        result is in or still to come (a later result is then refused as a duplicate).
+
+        Returns (done, the visit if it is now complete); done is False when the visit was
+        already emitted or has no corner in yet."""
+        t = int(stamp_ns)
+        if corner not in CORNERS or self._closed.find(t, self.tolerance_ns) is not None:
+            return False, None
+        visit = self._find(t)
+        if visit is None:
+            return False, None
+        visit.entries[corner] = CornerEntry(corner, t, None, False, status)
+        if len(visit.entries) == len(CORNERS):
+            return True, self._emit(visit, complete=True)
+        return True, None
+
     def expire(self, now: float) -> list[VisitVector]:
         """Emit every visit older than the timeout, missing corners marked invalid."""
         due = [v for v in self._visits if now - v.started > self.timeout_s]
@@ -421,6 +554,8 @@ class VisitAssembler:
     def _emit(self, visit: _Visit, *, complete: bool) -> VisitVector:
         self._visits.remove(visit)
         z = np.full(len(CORNERS) * N_ZK, np.nan)
+        unc = np.zeros(len(CORNERS) * N_ZK)
+        pairs = [0] * len(CORNERS)
         valid, statuses, bad = [], [], []
         for i, c in enumerate(CORNERS):
             e = visit.entries.get(c)
@@ -431,6 +566,8 @@ class VisitAssembler:
                 ok, st = e.valid, e.status if not e.valid else "ok"
                 if ok:
                     z[i * N_ZK:(i + 1) * N_ZK] = e.zernikes_nm
+                    unc[i * N_ZK:(i + 1) * N_ZK] = _reported(e.uncertainty_nm)
+                    pairs[i] = max(0, min(int(e.n_pairs), 65535))
             valid.append(ok)
             statuses.append(st)
             if not ok:
@@ -438,7 +575,18 @@ class VisitAssembler:
         how = "complete" if complete else f"timeout {self.timeout_s:g} s"
         self._closed.add(visit.stamp_ns, f"published, {how}")
         status = "ok" if not bad else "invalid corners: " + "; ".join(bad)
-        return VisitVector(visit.stamp_ns, z, tuple(valid), tuple(statuses), status, complete)
+        return VisitVector(visit.stamp_ns, z, tuple(valid), tuple(statuses), status, complete,
+                           uncertainty_nm=unc, n_pairs=tuple(pairs))
+
+
+def _reported(u: np.ndarray | None) -> np.ndarray:
+    """(19,) uncertainty as a WavefrontVector carries it: NaN, negative or absent -> 0."""
+    if u is None:
+        return np.zeros(N_ZK)
+    a = np.asarray(u, dtype=np.float64).reshape(-1)
+    if a.shape != (N_ZK,):
+        return np.zeros(N_ZK)
+    return np.where(np.isfinite(a) & (a > 0), a, 0.0)
 
 
 def checked_entry(e: CornerEntry) -> CornerEntry:
@@ -454,7 +602,7 @@ def checked_entry(e: CornerEntry) -> CornerEntry:
     if not np.all(np.isfinite(z)):
         return CornerEntry(e.corner, e.stamp_ns, None, False,
                            "bad_corner_wavefront: flagged valid but holds NaN/Inf Zernikes")
-    return CornerEntry(e.corner, e.stamp_ns, z, True, e.status)
+    return CornerEntry(e.corner, e.stamp_ns, z, True, e.status, e.uncertainty_nm, e.n_pairs)
 
 
 def zernikes_by_noll(noll: Iterable[int], values: Iterable[float]) -> np.ndarray | None:

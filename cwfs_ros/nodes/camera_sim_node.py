@@ -13,8 +13,12 @@ out  ``/joint_states``           sensor_msgs/JointState, joint ``camera_rotator`
      [rad] = ``rotator_angle_deg`` of the visit, stamped with the visit's stamp and published
      before its images
 in   ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection: a valid, non-dry-run correction is
-     added to the DoF state (used from the next rendered visit)
-out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored
+     added to the DoF state (used from the next rendered visit), only if its stamp is a visit
+     this node published and has not corrected yet, and each |step| is within dof.yaml's
+     max_step x ``correction_max_step_scale`` (``not_our_visit``, ``already_corrected``,
+     ``step_limit``): nothing else on the topic can move the telescope
+out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored,
+     other publishers on its image and truth topics
 srv  ``~/trigger``               std_srvs/Trigger: render one visit now (the only way when
      ``visit_period_s`` is 0)
 
@@ -33,6 +37,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -45,6 +50,7 @@ from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from cwfs_ros.core.blur import MAX_SEEING_FWHM_ARCSEC
+from cwfs_ros.core.corner_pool import guard_pool_workers
 from cwfs_ros.core.visits import CORNERS
 from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.sim.field_truth import field_truth
@@ -69,8 +75,10 @@ from .common import (
     describe,
     diagnostic_status,
     diagnostics_array,
+    foreign_publishers,
     ns_to_stamp,
     result,
+    stamp_to_ns,
 )
 from .convert import image_msg
 
@@ -133,10 +141,12 @@ class CameraSimNode(Node):
         self._intrinsic_by_angle: dict[float, np.ndarray] = {}
         self.intrinsic_nm = self._intrinsic(0.0)
 
-        self._pool = make_render_pool(int(p("render_workers")))
+        # Its workers end with this process, even one killed outright (docs/reliability.md).
+        self._pool = guard_pool_workers(make_render_pool(int(p("render_workers"))))
         self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
                       "corrections_applied": 0, "corrections_ignored": 0}
         self.ignored = RejectionCounter()
+        self._init_correction_guard()
         self.visit = 0
         self.last_render_s = float("nan")
         self.last_status = "no visit yet"
@@ -248,6 +258,10 @@ class CameraSimNode(Node):
         d("frame_id", describe("frame_id of the images and SimTruth.", **ro))
         d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
                                            fp_range=(0.05, 60.0)))
+        d("correction_max_step_scale", describe(
+            "Largest |step| of a correction applied, as a multiple of dof.yaml's max_step "
+            "(ofc_node's own limit is max_step_scale x the same); beyond it the correction "
+            "is ignored (step_limit); 0 = no limit.", fp_range=(0.0, 100.0), **ro))
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         for prm in params:
@@ -302,6 +316,8 @@ class CameraSimNode(Node):
             reason = ("bad_dof", f"dof must be {N_DOF} finite numbers")
         elif not bool(self._param("apply_corrections")):
             reason = ("not_applied", "apply_corrections is false")
+        else:
+            reason = self._correction_problem(msg, dof)
         if reason is not None:
             with self._lock:
                 self.stats["corrections_ignored"] += 1
@@ -312,10 +328,48 @@ class CameraSimNode(Node):
         with self._lock:
             step = dof if noise <= 0 else dof * (1.0 + noise * self._act_rng.normal(size=N_DOF))
             self._dof = self._dof + step
+            self._visits_published[stamp_to_ns(msg.header.stamp)] = True  # corrected
             self.stats["corrections_applied"] += 1
             norm = float(np.linalg.norm(self._dof))
         self.get_logger().info(f"applied DofCorrection: |step| {np.linalg.norm(step):.4g}, "
                                f"|dof| {norm:.4g}")
+
+    # ------------------------------------------------------------------ who may act
+    def _init_correction_guard(self) -> None:
+        """Which corrections may move the telescope: one per visit this node published,
+        within the step limits. Without DDS Security anyone can publish on the correction
+        topic; the stamp and the step are what the application can check."""
+        from cwfs_ros.core.control import load_dof_spec
+
+        # stamp (ns) of each visit published -> corrected yet; the last 64 visits.
+        self._visits_published: OrderedDict[int, bool] = OrderedDict()
+        scale = float(self._param("correction_max_step_scale"))
+        self._max_step = load_dof_spec().max_step * scale if scale > 0 else None
+        self.foreign: list[str] = []
+
+    def _note_published(self, stamp_ns: int) -> None:
+        with self._lock:
+            self._visits_published[int(stamp_ns)] = False
+            while len(self._visits_published) > 64:
+                self._visits_published.popitem(last=False)
+
+    def _correction_problem(self, msg: DofCorrection, dof: np.ndarray) -> tuple[str, str] | None:
+        """Why a valid correction must not be applied, or None (called before applying)."""
+        stamp = stamp_to_ns(msg.header.stamp)
+        with self._lock:
+            done = self._visits_published.get(stamp)
+        if done is None:
+            return ("not_our_visit", f"stamp {stamp} ns is not a visit this simulator "
+                    "published (recently): an outside publisher or a stale correction")
+        if done:
+            return ("already_corrected", f"visit {stamp} ns was already corrected once")
+        if self._max_step is not None:
+            over = np.abs(dof) > self._max_step * (1.0 + 1e-9)
+            if np.any(over):
+                i = int(np.argmax(np.abs(dof) / self._max_step))
+                return ("step_limit", f"DoF {i} step {dof[i]:.6g} is beyond its limit "
+                        f"{self._max_step[i]:.6g} ({int(over.sum())} DoF over)")
+        return None
 
     # ------------------------------------------------------------------ visits
     def request_visit(self) -> tuple[bool, str]:
@@ -391,6 +445,7 @@ class CameraSimNode(Node):
                                  frame_id=self.frame_id) for k, v in images.items()}
             if self._closing:
                 return
+            self._note_published(stamp_ns)
             for k, m in msgs.items():
                 self.pubs[k].publish(m)
             self.pub_truth.publish(truth)
@@ -484,8 +539,14 @@ class CameraSimNode(Node):
                       ("last_status", self.last_status)]
             failed = stats["visits_failed"] > 0 and "failed" in self.last_status
         values += self.ignored.key_values()
+        self.foreign = foreign_publishers(self, [*(IMAGE_TOPIC.format(corner=c, side=s)
+                                                   for c in CORNERS for s in SIDES),
+                                                 TRUTH_TOPIC])
+        values.append(("foreign_publishers", "; ".join(self.foreign) or "none"))
         if failed:
             level, message = WARN, self.last_status
+        elif self.foreign:
+            level, message = WARN, f"another publisher on a topic of this node: {self.foreign[0]}"
         elif self.ignored.recent(10.0):
             level, message = WARN, f"recently ignored a correction: {self.ignored.last_message}"
         else:

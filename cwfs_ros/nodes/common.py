@@ -47,7 +47,11 @@ __all__ = [
     "QosEventMonitor",
     "image_qos",
     "RejectionCounter",
+    "MAX_STRING_PARAM_LEN",
+    "SequenceGaps",
     "bundled_declarer",
+    "foreign_publishers",
+    "string_param_problem",
     "describe",
     "diagnostic_status",
     "diagnostics_array",
@@ -169,14 +173,36 @@ def ns_to_stamp(ns: int) -> Time:
 
 
 class RejectionCounter:
-    """Thread-safe counts of rejected inputs by reason, plus the last one."""
+    """Thread-safe counts of rejected inputs by reason, plus the last one.
+
+    :meth:`log_due` throttles the log per reason: a flood of one reason would otherwise write
+    a line per message, and one throttle shared by every reason (rclpy's
+    ``throttle_duration_sec`` keeps one per call site) would hide a second reason under it.
+    """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
+        self.suppressed: Counter[str] = Counter()
+        self.logged: Counter[str] = Counter()
+        self._logged_at: dict[str, float] = {}
         self.last_reason = ""
         self.last_message = ""
         self.last_time = 0.0
+
+    def log_due(self, reason: str, period_s: float) -> tuple[bool, int]:
+        """(whether a line for ``reason`` may be logged now, lines suppressed since the last
+        one). At most one line per reason per ``period_s`` (0: every one)."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._logged_at.get(reason)
+            if period_s > 0 and last is not None and now - last < period_s:
+                self.suppressed[reason] += 1
+                return False, 0
+            self._logged_at[reason] = now
+            self.logged[reason] += 1
+            n = self.suppressed.pop(reason, 0)
+            return True, n
 
     def add(self, reason: str, message: str) -> None:
         with self._lock:
@@ -199,6 +225,77 @@ class RejectionCounter:
             out += [(f"rejected.{k}", str(v)) for k, v in sorted(self.counts.items())]
             out += [("last_rejection", self.last_message or "none")]
             return out
+
+
+# Longest string parameter taken (frame_id, ...): a frame name is a few words; a megabyte
+# would be copied into every message header.
+MAX_STRING_PARAM_LEN = 256
+
+
+def string_param_problem(name: str, value: object,
+                         max_len: int = MAX_STRING_PARAM_LEN) -> str | None:
+    """Why a string parameter value is refused (too long, control characters), or None."""
+    if not isinstance(value, str):
+        return None
+    if len(value) > max_len:
+        return f"{name} is {len(value)} characters long; at most {max_len} are taken"
+    if any(ord(ch) < 32 for ch in value):
+        return f"{name} must not hold control characters"
+    return None
+
+
+def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
+    """``"<topic>: <namespace>/<node>"`` for every publisher on ``topics`` (this node's own
+    outputs) that is not ``node`` itself.
+
+    Without DDS Security nothing stops another process from publishing on a topic this node
+    owns; consumers cannot tell its messages from the node's, so the node names such
+    publishers on /diagnostics. ``topics`` are names as the node created them (resolved
+    here).
+    """
+    me = (node.get_namespace().rstrip("/"), node.get_name())
+    out = []
+    for t in topics:
+        try:
+            name = node.resolve_topic_name(t)
+            infos = node.get_publishers_info_by_topic(name)
+        except Exception:  # noqa: BLE001 - a graph query must not break diagnostics
+            continue
+        for info in infos:
+            who = (str(info.node_namespace).rstrip("/"), str(info.node_name))
+            if who != me:
+                out.append(f"{name}: {who[0]}/{who[1]}")
+    return sorted(out)
+
+
+class SequenceGaps:
+    """Messages a subscription never took, from the publishers' sequence numbers.
+
+    A RELIABLE KEEP_LAST reader whose queue overflows drops the oldest samples without any
+    ``message_lost`` event (FastDDS reports none for them); each message's
+    ``publication_sequence_number`` (rclpy's message info) still counts every sample its
+    writer sent, so a forward jump of more than one is that many messages dropped. Exact
+    with one publisher on the topic; with several (reported as other publishers), their
+    interleaved numbers make it an estimate, said so on /diagnostics. Counted from the first
+    message taken: a reader that joins late sees a writer's numbers from where it is.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: int | None = None
+        self.dropped = 0
+
+    def note(self, info: Any) -> int:
+        """Account one taken message; return how many were dropped just before it."""
+        try:
+            seq = int(info["publication_sequence_number"])
+        except (TypeError, KeyError, ValueError):
+            return 0
+        with self._lock:
+            last, self._last = self._last, seq
+            gap = seq - last - 1 if last is not None and seq > last + 1 else 0
+            self.dropped += gap
+            return gap
 
 
 def diagnostic_status(name: str, level: bytes, message: str,

@@ -77,8 +77,8 @@ def corner_wavefront_msg(out: CornerOutcome, *, field_intra_deg: Sequence[float]
     m.field_extra_deg = np.asarray(field_extra_deg, dtype=np.float64)
     m.noll = [int(j) for j in out.noll]
     m.zernikes_nm = [float(v) for v in out.zernikes_nm]
-    # A single stamp pair has no per-term uncertainty (NaN = unknown); frames give one from
-    # the scatter of their pairs.
+    # NaN = unknown (an invalid result, or no noise model); a stamp pair gives the noise
+    # model's, frames the scatter of their pairs.
     unc = out.uncertainty_nm
     m.uncertainty_nm = ([float(v) for v in unc] if unc is not None and len(unc) == len(out.noll)
                         else [float("nan")] * len(out.noll))
@@ -101,7 +101,10 @@ def corner_entry_from_msg(m: CornerWavefront) -> CornerEntry:
         valid = False
         status = ("bad_corner_wavefront: flagged valid but noll/zernikes_nm do not hold "
                   f"Z4..Z22 (noll={list(m.noll)}, {len(m.zernikes_nm)} values)")
-    return CornerEntry(m.corner, stamp_to_ns(m.header.stamp), z, valid, status)
+    unc = np.asarray(m.uncertainty_nm, dtype=np.float64).reshape(-1)
+    unc_z = zernikes_by_noll(m.noll, unc) if unc.size == len(m.noll) else None
+    return CornerEntry(m.corner, stamp_to_ns(m.header.stamp), z, valid, status, unc_z,
+                       int(m.n_pairs))
 
 
 def wavefront_vector_msg(v: VisitVector, frame_id: str) -> WavefrontVector:
@@ -112,6 +115,8 @@ def wavefront_vector_msg(v: VisitVector, frame_id: str) -> WavefrontVector:
     m.corner_valid = [bool(b) for b in v.corner_valid]
     m.corners = list(v.corners)
     m.status = v.status
+    m.uncertainty_nm = np.asarray(v.uncertainty_nm, dtype=np.float64)
+    m.n_pairs = [int(n) for n in v.n_pairs]
     return m
 
 

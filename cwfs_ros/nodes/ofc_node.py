@@ -27,6 +27,16 @@ beyond ``max_abs_zernike_nm``, one whose stamp is unset, not newer than the last
 (a repeated or reordered message) or more than ``max_future_s`` ahead of the clock. With
 ``dry_run`` the correction is computed and published (``dry_run=true``) but the controller
 state does not advance, since the correction is not applied.
+
+Input guards (docs/reliability.md), before the solver: a vector bit-identical to one already
+integrated (``repeated_measurement``) or stamped less than ``min_visit_period_s`` after the
+last integrated visit (``too_soon``) is counted and logged (throttled) but gets no
+DofCorrection, so that a flood is not passed on; a valid corner beyond the physical bounds of
+:mod:`cwfs_ros.ofc.plausibility` (``implausible_wavefront``), with no measurement in it
+(``no_measurement``) or without the uncertainty its producer reports for the others
+(``no_uncertainty``) is refused like any other refusal. Vectors the subscription queue
+dropped are counted from the publishers' sequence numbers; other publishers on the
+correction topic are named on /diagnostics.
 """
 
 from __future__ import annotations
@@ -45,6 +55,7 @@ from std_srvs.srv import Trigger
 
 from cwfs_ros.core import control as C
 from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.ofc import plausibility as P
 from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC
 from cwfs_ros.ofc.params import CONTROLLERS, controller_from_params, restore_record, state_record
 from cwfs_ros.ofc.persistence import load_state, save_state
@@ -57,13 +68,16 @@ from .common import (
     OUTPUT_QOS,
     WARN,
     RejectionCounter,
+    SequenceGaps,
     bundled_declarer,
     describe,
     diagnostic_status,
     diagnostics_array,
+    foreign_publishers,
     result,
     stamp_problem,
     stamp_to_ns,
+    string_param_problem,
 )
 from .convert import dof_correction_msg, vector_from_msg
 
@@ -99,6 +113,7 @@ class OfcNode(Node):
         self.dry_run = bool(self._param("dry_run"))
         self.frame_id = str(self._param("frame_id"))
         self._warm(self.solver)
+        self._init_guards()
         self.refused = RejectionCounter()
         self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
                       "resets": 0, "rotator_samples": 0, "rotator_samples_ignored": 0,
@@ -112,8 +127,8 @@ class OfcNode(Node):
         self._load_state()
         self.pub = self.create_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-        self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC, self._on_vector,
-                                            OUTPUT_QOS)
+        self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC,
+                                            self._on_vector_info, OUTPUT_QOS)
         # Joint states come at the rotator's rate: a deeper queue than the outputs', so that a
         # burst around a visit is not lost; reliable, as robot_state_publisher's are.
         self.sub_joints = self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
@@ -186,6 +201,7 @@ class OfcNode(Node):
         d("frame_id", describe("frame_id of DofCorrection."))
         d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
                                                 fp_range=(0.05, 60.0)))
+        _declare_guard_parameters(d)
 
     def _declare_kalman(self, d) -> None:
         text = {
@@ -228,6 +244,10 @@ class OfcNode(Node):
         src = new.get("rotator_angle_source")
         if src is not None and src not in ("topic", "fixed"):
             return result(False, f"rotator_angle_source must be topic or fixed, got {src!r}")
+        for n, v in new.items():
+            bad = string_param_problem(n, v)
+            if bad is not None:
+                return result(False, bad)
         if not any(n in new for n in _SOLVER_PARAMS):
             return result(True)
 
@@ -255,6 +275,84 @@ class OfcNode(Node):
                 self.solver = new
                 self.get_logger().info(f"controller rebuilt for {sorted(names)}; kept {kept}")
 
+    # ------------------------------------------------------------------ input guards
+    def _init_guards(self) -> None:
+        """State of the input guards (docs/reliability.md)."""
+        bad = string_param_problem("frame_id", self.frame_id)
+        if bad is not None:
+            raise ConfigError(f"parameter {bad}")
+        self.guard = P.VisitGuard(self._param("min_visit_period_s"))
+        self.queue_gaps = SequenceGaps()
+        self.guard_counts = RejectionCounter()
+        self._bounds: P.PlausibilityBounds | None = None
+        self._plausibility_bounds()  # now, so that the first visit is fast
+        self.foreign: list[str] = []
+
+    def _on_vector_info(self, msg: WavefrontVector, info) -> None:
+        """The subscription's callback: count what the queue dropped, then handle it."""
+        gap = self.queue_gaps.note(info)
+        if gap:
+            self.guard_counts.add("queue_dropped", f"{gap} vector(s) dropped by the "
+                                  "subscription queue (its depth was exceeded)")
+            self._log_guard("queue_dropped", f"{gap} vector(s) dropped by the subscription "
+                            f"queue before visit {msg.header.stamp.sec}; "
+                            f"{self.queue_gaps.dropped} in all")
+        self._on_vector(msg)
+
+    def _log_guard(self, reason: str, text: str) -> None:
+        due, n = self.guard_counts.log_due(reason, float(self._param("log_throttle_s")))
+        if due:
+            more = f" (+{n} more not logged)" if n else ""
+            self.get_logger().warning(text + more)
+
+    def _plausibility_bounds(self) -> P.PlausibilityBounds:
+        band, src = str(self._param("band")), str(self._param("matrix_source"))
+        margin = float(self._param("plausibility_margin_nm"))
+        b = self._bounds
+        if b is None or (b.band, b.source, b.margin_nm) != (band, src, margin):
+            b = self._bounds = P.physical_bounds(band, src, margin)
+        return b
+
+    def _guard_vector(self, msg: WavefrontVector, stamp: int) -> tuple[str, bool] | None:
+        """Why the vector is refused before the solver, or None; with whether to publish the
+        refusal (False for a repeat or a visit too soon: answering a flood message by
+        message would pass it on)."""
+        z, valid, problem = vector_from_msg(msg)
+        if problem is not None:
+            return None  # the solver path names a layout problem
+        with self._lock:
+            self.guard.min_period_s = float(self._param("min_visit_period_s"))
+            self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
+            rate = self.guard.check(stamp, z, valid)
+        if not rate.ok:
+            self.guard_counts.add(rate.reason, rate.message)
+            self._log_guard(rate.reason, f"visit {stamp}: not integrated, no correction "
+                            f"published: {rate.status}")
+            return rate.status, False
+        v = P.check_vector(z, valid, self._plausibility_bounds(),
+                           uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
+                           n_pairs=np.asarray(list(msg.n_pairs)),
+                           n_sigma=float(self._param("plausibility_n_sigma")),
+                           min_corner_rms_nm=float(self._param("min_corner_rms_nm")))
+        return (v.status, True) if not v.ok else None
+
+    def _note_integrated(self, msg: WavefrontVector, stamp: int, out: C.OFCResult,
+                         dry: bool) -> None:
+        if out.valid and not dry:
+            z, valid, _ = vector_from_msg(msg)
+            with self._lock:
+                self.guard.integrated(stamp, z, valid)
+
+    def _guard_values(self) -> list[tuple[str, str]]:
+        self.foreign = foreign_publishers(self, [CORRECTION_TOPIC])
+        n_pub = len(self.get_publishers_info_by_topic(self.sub.topic_name))
+        values = [(f"guard.{k}", str(v)) for k, v in sorted(self.guard_counts.counts.items())]
+        values += [("queue_dropped", str(self.queue_gaps.dropped)
+                    + ("" if n_pub <= 1 else f" (estimate: {n_pub} publishers)")),
+                   ("min_visit_period_s", str(self.guard.min_period_s)),
+                   ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        return values
+
     # ------------------------------------------------------------------ control
     def _on_vector(self, msg: WavefrontVector) -> None:
         bad = stamp_problem(msg.header.stamp)
@@ -268,6 +366,16 @@ class OfcNode(Node):
                           self._refusal(bad))
             return
         stamp = stamp_to_ns(msg.header.stamp)
+        try:
+            guard = self._guard_vector(msg, stamp)
+        except Exception as exc:  # noqa: BLE001 - a message must never crash the node
+            guard = (f"internal_error: input guard: {type(exc).__name__}: {exc}", True)
+        if guard is not None:
+            with self._lock:
+                self.stats["vectors"] += 1
+            if guard[1]:
+                self._publish(stamp, self._refusal(guard[0]), self.dry_run)
+            return
         try:
             z, valid, problem = vector_from_msg(msg)
             with self._lock:
@@ -289,6 +397,7 @@ class OfcNode(Node):
             out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
             dry = self.dry_run
         self._publish(stamp, out, dry)
+        self._note_integrated(msg, stamp, out, dry)
 
     def _step(self, z: np.ndarray, valid: np.ndarray, unc: np.ndarray, angle: float,
               stamp: int, dry: bool) -> C.OFCResult:
@@ -450,8 +559,11 @@ class OfcNode(Node):
                       *stats.items(), ("last_status", self.last_status),
                       ("last_step_ms", f"{self.last_ms:.2f}")]
         values += self.refused.key_values()
+        values += self._guard_values()
         if self.state_problem is not None:
             level, message = ERROR, self.state_problem
+        elif self.foreign:
+            level, message = WARN, f"another publisher on the correction topic: {self.foreign[0]}"
         elif self.refused.recent(10.0):
             level, message = WARN, f"recently refused a visit: {self.refused.last_message}"
         else:
@@ -475,6 +587,29 @@ class OfcNode(Node):
                                                     [self.diagnostics()]))
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f"diagnostics failed: {exc}")
+
+
+def _declare_guard_parameters(d) -> None:
+    """The input guards' parameters (docs/reliability.md)."""
+    d("min_visit_period_s", describe(
+        "Refuse, without a correction, a visit stamped less than this after the last one "
+        "integrated [s]; 0 = off. The camera's 2 s readout keeps any two exposures apart by "
+        "more; survey visits are ~30-40 s apart.", fp_range=(0.0, 3600.0)))
+    d("refuse_repeats", describe(
+        "Refuse, without a correction, a vector bit-identical to one already integrated (a "
+        "re-stamped copy); false only for benchmarks that replay one visit's images."))
+    d("plausibility_margin_nm", describe(
+        "Added to each term's physical bound (design + most the DoF strokes can add) [nm]: "
+        "what the linear 50-DoF model and the estimator leave out.", fp_range=(0.0, 1e6)))
+    d("plausibility_n_sigma", describe(
+        "Multiple of the reported per-term uncertainty added to each bound.",
+        fp_range=(0.0, 100.0)))
+    d("min_corner_rms_nm", describe(
+        "A valid corner whose 19 terms have a smaller rms carries no measurement [nm].",
+        fp_range=(0.0, 100.0)))
+    d("log_throttle_s", describe(
+        "At most one log line per guard reason per this period [s] (all are counted); "
+        "0 = a line each.", fp_range=(0.0, 3600.0)))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -13,7 +13,16 @@ in   ``/aos/wfs/<corner>/wavefront``     for corners served by *other* processes
      they were produced.
 out  ``/aos/wfs/wavefront``              cwfs_msgs/WavefrontVector, when the four corners of a
      visit are in, or after ``visit_timeout_s`` with the missing corners marked invalid.
-out  ``/diagnostics``                    state, counts of rejected inputs and the last reason.
+out  ``/diagnostics``                    state, counts of rejected inputs and the last reason,
+     pending memory, messages lost, and any other publisher on the topics this node owns.
+
+Input guards (docs/reliability.md): an image stamped more than ``max_future_s`` ahead of the
+node's clock, or whose ``header.frame_id`` names another corner or side than its topic's, is
+refused (``future_stamp``, ``frame_mismatch``); images waiting for their partners hold at most
+``max_pending_mb`` (the oldest is dropped first, ``memory_limit``); two different images for
+one corner, side and stamp make that corner invalid (``conflicting_images``, see
+:mod:`cwfs_ros.core.visits`). Rejections are logged at most once per ``log_throttle_s`` per
+reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.core.corner_pool.CornerPool`), one corner per worker, warmed up at start.
@@ -22,8 +31,10 @@ The pairing and assembly rules are in :mod:`cwfs_ros.core.visits`.
 
 from __future__ import annotations
 
+import re
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import Future
 
@@ -64,19 +75,23 @@ from cwfs_ros.core.visits import (
 from .common import (
     DIAGNOSTICS_QOS,
     ERROR,
+    MAX_STRING_PARAM_LEN,
     OK,
     OUTPUT_QOS,
     WARN,
     QosEventMonitor,
     RejectionCounter,
+    SequenceGaps,
     bundled_declarer,
     describe,
     diagnostic_status,
     diagnostics_array,
+    foreign_publishers,
     image_qos,
     result,
     stamp_problem,
     stamp_to_ns,
+    string_param_problem,
 )
 from .convert import (
     corner_entry_from_msg,
@@ -136,6 +151,9 @@ class WavefrontNode(Node):
         self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
                              for c in self.corners for s in SIDES}
         self.frame_id = p("frame_id")
+        bad = string_param_problem("frame_id", self.frame_id)
+        if bad is not None:
+            raise ConfigError(f"parameter {bad}")
         tol_ns = int(round(p("pairing_tolerance_s") * 1e9))
         timeout = p("visit_timeout_s")
         self.pairing = PairingBuffer(self.corners, tolerance_ns=tol_ns, timeout_s=timeout)
@@ -150,6 +168,12 @@ class WavefrontNode(Node):
         # (monotonic time, what was missing) of the last visit published incomplete: WARN on
         # /diagnostics for a minute, as a producer that stopped is not an input rejected.
         self.last_incomplete: tuple[float, str] | None = None
+        # (corner, visit stamp) of visits whose corner had conflicting images after pairing:
+        # their estimate is published invalid (bounded, oldest forgotten first).
+        self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
+        self.foreign: list[str] = []
+        # Images never taken (the queue overflowed), per topic, from sequence numbers.
+        self.image_gaps = {(c, s): SequenceGaps() for c in self.corners for s in SIDES}
 
         img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
         # Worker processes, warmed up in the background.
@@ -171,8 +195,10 @@ class WavefrontNode(Node):
         for c in self.corners:
             for s in SIDES:
                 topic = image_topic(c, s)
+                cb = self._image_callback(c, s)
+                # Two arguments: rclpy passes the message info (its sequence numbers).
                 self._subs.append(self.create_subscription(
-                    Image, topic, self._image_callback(c, s), img_qos,
+                    Image, topic, lambda msg, info, cb=cb: cb(msg, info), img_qos,
                     callback_group=self._cb_images,
                     event_callbacks=self.qos_events.subscription_callbacks(topic)))
         if self.assemble:
@@ -264,6 +290,21 @@ class WavefrontNode(Node):
                 d(f"sensors.{c}.{s}.flip", describe(
                     f"Flip of the {c} {s} image after the rotation: none, lr (x -> -x) or "
                     "ud (y -> -y).", constraints=" | ".join(FLIPS)))
+        self._declare_guard_parameters(d)
+
+    @staticmethod
+    def _declare_guard_parameters(d) -> None:
+        """The input guards' parameters (docs/reliability.md)."""
+        d("max_pending_mb", describe(
+            "Memory [MB] the decoded images waiting for their partners may hold; beyond it "
+            "the oldest is dropped first, counted and reported (memory_limit).",
+            fp_range=(1.0, 65536.0)))
+        d("max_future_s", describe(
+            "Refuse an image stamped more than this ahead of the node's clock [s] "
+            "(future_stamp); 0 = no limit.", fp_range=(0.0, 1e6)))
+        d("log_throttle_s", describe(
+            "At most one log line per rejection reason per this period [s]; every rejection "
+            "is counted on /diagnostics; 0 = a line each.", fp_range=(0.0, 3600.0)))
 
     @staticmethod
     def _settings_from(get) -> EstimatorSettings:
@@ -295,6 +336,9 @@ class WavefrontNode(Node):
         for n, v in new.items():
             if n.startswith("sensors.") and n.endswith(".flip") and v not in FLIPS:
                 return result(False, f"{n} must be one of {FLIPS}, got {v!r}")
+            bad = string_param_problem(n, v, MAX_STRING_PARAM_LEN)
+            if bad is not None:
+                return result(False, bad)
         return result(True)
 
     def _apply_parameters(self, params: Sequence[Parameter]) -> None:
@@ -381,8 +425,14 @@ class WavefrontNode(Node):
 
     # ------------------------------------------------------------------ images
     def _image_callback(self, corner: str, side: str):
-        def cb(msg: Image) -> None:
+        def cb(msg: Image, info=None) -> None:
             try:
+                gap = self.image_gaps[(corner, side)].note(info) if info is not None else 0
+                if gap:
+                    self._reject(Rejection(
+                        "queue_dropped", f"{gap} {side} image(s) of {corner} never taken: "
+                        "the queue overflowed (a burst faster than the node takes them)",
+                        corner, side), warn=True)
                 self._on_image(msg, corner, side)
             except Exception as exc:  # noqa: BLE001 - never let a message kill the node
                 self._reject(Rejection("internal_error", f"{corner} {side} image: "
@@ -395,6 +445,10 @@ class WavefrontNode(Node):
             self._reject(Rejection("bad_stamp", f"{side} image of {corner}: {bad}", corner,
                                    side, 0), warn=True)
             return
+        guard = self._guard_image(msg, corner, side)
+        if guard is not None:
+            self._reject(guard, warn=True)
+            return
         rec = image_record_from_msg(msg, corner, side, time.monotonic())
         if rec.error:
             self._reject(Rejection(rec.error.split(":", 1)[0], f"{side} image of {corner}: "
@@ -402,10 +456,73 @@ class WavefrontNode(Node):
         with self._lock:
             self.stats["images"] += 1
             pair, rej = self.pairing.add(rec)
+            dropped = self._bound_pending()
+        for r in dropped:
+            self._publish_unpaired(r)
         if rej is not None:
             self._reject(rej, warn=True)
+            if rej.reason == "conflicting_images":
+                self._on_conflict(rej)
         if pair is not None:
             self._process_pair(pair)
+
+    def _guard_image(self, msg: Image, corner: str, side: str) -> Rejection | None:
+        """Refusals before decoding: a stamp too far ahead of the clock, a frame_id naming
+        another corner or side (see :func:`frame_id_problem`)."""
+        t = stamp_to_ns(msg.header.stamp)
+        ahead = float(self._param("max_future_s"))
+        now = self.get_clock().now().nanoseconds
+        if ahead > 0 and now > 0 and t > now + ahead * 1e9:
+            return Rejection("future_stamp", f"{side} image of {corner}: stamped "
+                             f"{(t - now) / 1e9:.4g} s ahead of the clock (max_future_s "
+                             f"{ahead:g})", corner, side, t)
+        bad = frame_id_problem(str(msg.header.frame_id), corner, side)
+        if bad is not None:
+            return Rejection("frame_mismatch", f"{side} image of {corner}: {bad}", corner,
+                             side, t)
+        return None
+
+    def _bound_pending(self) -> list[Rejection]:
+        """Drop the oldest waiting images while they hold more than ``max_pending_mb``
+        (called with the lock held)."""
+        limit = float(self._param("max_pending_mb")) * 1e6
+        out = []
+        while self.pairing.pending_bytes() > limit:
+            r = self.pairing.drop_oldest()
+            if r is None:
+                break
+            out.append(r)
+        return out
+
+    def _on_conflict(self, rej: Rejection) -> None:
+        """Two different images for one corner, side and stamp: the corner's visit is
+        invalid. Found while the first waited, the pairing closed the visit: publish the
+        corner invalid now. Found after pairing: the estimate in flight is published
+        invalid (:meth:`_publish_outcome`), or, already published, the corner is made
+        invalid in its visit if that is still being assembled."""
+        c, t = rej.corner, rej.stamp_ns
+        with self._lock:
+            paired = self.pairing.was_paired(c, t)
+        if not paired:
+            self._publish_unpaired(Rejection("conflicting_images", rej.message, c, rej.side,
+                                             t), count=False)
+            return
+        with self._lock:
+            self._conflicts[(c, t)] = rej.message
+            while len(self._conflicts) > 256:
+                self._conflicts.popitem(last=False)
+            done, vec = ((False, None) if self.assembler is None else
+                         self.assembler.invalidate(c, t, f"conflicting_images: {rej.message}"))
+        if vec is not None:
+            self._publish_vector(vec)
+
+    def _conflict_of(self, corner: str, stamp_ns: int) -> str | None:
+        with self._lock:
+            tol = self.pairing.tolerance_ns
+            for (c, t), m in self._conflicts.items():
+                if c == corner and abs(t - stamp_ns) <= tol:
+                    return m
+        return None
 
     def _process_pair(self, pair: PairReady) -> None:
         c = pair.corner
@@ -448,11 +565,14 @@ class WavefrontNode(Node):
         except Exception as exc:  # noqa: BLE001
             self._publish_failed(exc)
 
-    def _publish_unpaired(self, r: Rejection, assemble: bool = True) -> None:
+    def _publish_unpaired(self, r: Rejection, assemble: bool = True,
+                          count: bool = True) -> None:
         """Report a half visit dropped unpaired (the pairing timeout, or its visit published
         without it), and say so on the corner's topic. A failure to publish is reported, not
-        raised, so that it does not stop the others of the same pass."""
-        self._reject(r, warn=True)
+        raised, so that it does not stop the others of the same pass. ``count``: False when
+        ``r`` was already counted."""
+        if count:
+            self._reject(r, warn=True)
         f = self.fields[r.corner]
         try:
             self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
@@ -478,6 +598,12 @@ class WavefrontNode(Node):
         Zernikes are in the focal-plane frame whatever frame the camera names its images in.
         """
         c = out.corner
+        conflict = self._conflict_of(c, out.stamp_ns) if out.valid else None
+        if conflict is not None:
+            f = self.fields[c]
+            out = invalid_outcome(c, out.stamp_ns, "conflicting_images", conflict,
+                                  f["intra"], f["extra"], out.solver)
+            count = False
         with self._lock:
             self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
             self.last_compute_ms[c] = out.compute_ms
@@ -490,7 +616,8 @@ class WavefrontNode(Node):
                                    frame_id=self.frame_id)
         self.pub_corner[c].publish(msg)
         if self.assembler is not None and assemble:
-            self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status))
+            self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status,
+                                       out.uncertainty_nm, out.n_pairs if out.valid else 0))
 
     # ------------------------------------------------------------------ assembly
     def _remote_corner_callback(self, corner: str):
@@ -575,7 +702,10 @@ class WavefrontNode(Node):
     def _reject(self, rej: Rejection, warn: bool = False) -> None:
         self.rejected.add(rej.reason, rej.message)
         if warn:
-            self.get_logger().warning(f"rejected ({rej.reason}): {rej.message}")
+            due, n = self.rejected.log_due(rej.reason, float(self._param("log_throttle_s")))
+            if due:
+                more = f" (+{n} more of this reason not logged)" if n else ""
+                self.get_logger().warning(f"rejected ({rej.reason}): {rej.message}{more}")
 
     def diagnostics(self):
         with self._lock:
@@ -586,6 +716,8 @@ class WavefrontNode(Node):
             compute = dict(self.last_compute_ms)
             last = dict(self.last_status)
             incomplete = self.last_incomplete
+            pending_mb = self.pairing.pending_bytes() / 1e6
+        self.foreign = foreign_publishers(self, self._owned_topics())
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
             level, state = ERROR, "error"
@@ -597,6 +729,9 @@ class WavefrontNode(Node):
         elif self.qos_events.problem() is not None:
             level, state = ERROR, "ready"
             message = f"QoS: {self.qos_events.problem()}"
+        elif self.foreign:
+            level, state = WARN, "ready"
+            message = f"ready; another publisher on a topic of this node: {self.foreign[0]}"
         elif self.rejected.recent(10.0):
             level, state = WARN, "ready"
             message = f"ready; recently rejected input: {self.rejected.last_message}"
@@ -609,7 +744,11 @@ class WavefrontNode(Node):
                   ("workers", self.pool.n_workers), ("worker_restarts", self.pool.restarts),
                   ("assemble", self.assemble), ("settings", str(self.settings)),
                   *stats.items(), ("pending_images", pending_images),
-                  ("pending_visits", pending_visits)]
+                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
+                  ("max_pending_mb", self._param("max_pending_mb")),
+                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
         values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
         values += [(f"status.{c}", v) for c, v in sorted(last.items())]
         values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
@@ -618,6 +757,10 @@ class WavefrontNode(Node):
         values += self.qos_events.key_values()
         return diagnostic_status(f"{self.get_name()}: wavefront estimation", level, message,
                                  values, hardware_id="cwfs_corner_sensors")
+
+    def _owned_topics(self) -> list[str]:
+        out = [corner_topic(c) for c in self.corners]
+        return out + [VECTOR_TOPIC] if self.assemble else out
 
     def publish_diagnostics(self) -> None:
         try:
@@ -629,6 +772,33 @@ class WavefrontNode(Node):
     def destroy_node(self) -> None:
         self.pool.shutdown(wait=False)
         super().destroy_node()
+
+
+_CORNER_RE = re.compile(r"(?<![0-9A-Za-z])R(00|04|40|44)(?![0-9])", re.IGNORECASE)
+# LSST names the corner wavefront half-chips SW0 (extra-focal) and SW1 (intra-focal).
+_SIDE_WORDS = {"intra": "intra", "extra": "extra", "sw0": "extra", "sw1": "intra"}
+_SIDE_RE = re.compile(r"(?<![0-9A-Za-z])(intra|extra|sw0|sw1)(?![0-9A-Za-z])", re.IGNORECASE)
+
+
+def frame_id_problem(frame_id: str, corner: str, side: str) -> str | None:
+    """Why an image's ``frame_id`` contradicts its topic's corner and side, or None.
+
+    An empty frame_id, or one naming no corner and no side (``focal_plane``), says nothing
+    and is taken. One naming a corner (``R00`` .. ``R44``, as a word) must name the topic's
+    corner only; one naming a side (``intra``/``extra``, or LSST's ``SW1``/``SW0``) must name
+    the topic's side only.
+    """
+    if not frame_id:
+        return None
+    corners = {"R" + m.group(1) for m in _CORNER_RE.finditer(frame_id)}
+    if corners and corners != {corner}:
+        return (f"frame_id {frame_id[:80]!r} names {', '.join(sorted(corners))}, not the "
+                f"topic's corner {corner}")
+    sides = {_SIDE_WORDS[m.group(1).lower()] for m in _SIDE_RE.finditer(frame_id)}
+    if sides and sides != {side}:
+        return (f"frame_id {frame_id[:80]!r} names the {', '.join(sorted(sides))} side, not "
+                f"the topic's {side}")
+    return None
 
 
 def main(args: list[str] | None = None) -> int:
