@@ -88,8 +88,13 @@ def main() -> int:
 
     env = dict(os.environ)
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
+    # One visit's images are sent again and again under new stamps, faster than visits come
+    # and with no rotator: the controller's repeat and cadence guards and its rotator input
+    # are set aside for this load benchmark.
     proc = subprocess.Popen([sys.executable, "-m", "cwfs_ros.launch", "bringup", "--ros-args",
-                             "--log-level", "warn"], env=env, cwd=REPO,
+                             "--log-level", "warn", "-p", "rotator_angle_source:=fixed",
+                             "-p", "min_visit_period_s:=0.0", "-p", "refuse_repeats:=false"],
+                            env=env, cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     rclpy.init()

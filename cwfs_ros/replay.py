@@ -280,13 +280,13 @@ class _Pipeline:
         self._outcome(out, now_s)
 
     def _outcome(self, out: Any, now_s: float) -> None:
-        from .core.visits import CornerEntry
+        from .core.visits import corner_entry_from_outcome
 
         self.corners.append(CornerRow(self._visit(out.stamp_ns), int(out.stamp_ns), out.corner,
                                       bool(out.valid), out.status,
                                       [float(v) for v in out.zernikes_nm]))
         vec, rej = self.assembler.add(
-            CornerEntry(out.corner, out.stamp_ns, out.zernikes_nm, out.valid, out.status), now_s)
+            corner_entry_from_outcome(out), now_s)
         if rej is not None:
             self.rejections.append(rej.message)
         if vec is not None:

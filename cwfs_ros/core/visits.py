@@ -54,6 +54,7 @@ __all__ = [
     "Rejection",
     "VisitAssembler",
     "VisitVector",
+    "corner_entry_from_outcome",
     "format_stamp",
     "image_record_from_msg",
     "load_corner_fields",
@@ -577,6 +578,13 @@ class VisitAssembler:
         status = "ok" if not bad else "invalid corners: " + "; ".join(bad)
         return VisitVector(visit.stamp_ns, z, tuple(valid), tuple(statuses), status, complete,
                            uncertainty_nm=unc, n_pairs=tuple(pairs))
+
+
+def corner_entry_from_outcome(out: Any) -> CornerEntry:
+    """The assembly entry of a corner job's outcome, as wavefront_node and the offline replay
+    both build it (so that a replayed vector carries what the live one did)."""
+    return CornerEntry(out.corner, out.stamp_ns, out.zernikes_nm, out.valid, out.status,
+                       out.uncertainty_nm, out.n_pairs if out.valid else 0)
 
 
 def _reported(u: np.ndarray | None) -> np.ndarray:

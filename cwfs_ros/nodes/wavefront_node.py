@@ -69,6 +69,7 @@ from cwfs_ros.core.visits import (
     VisitAssembler,
     VisitVector,
     checked_entry,
+    corner_entry_from_outcome,
     load_corner_fields,
 )
 
@@ -616,8 +617,7 @@ class WavefrontNode(Node):
                                    frame_id=self.frame_id)
         self.pub_corner[c].publish(msg)
         if self.assembler is not None and assemble:
-            self._assemble(CornerEntry(c, out.stamp_ns, out.zernikes_nm, out.valid, out.status,
-                                       out.uncertainty_nm, out.n_pairs if out.valid else 0))
+            self._assemble(corner_entry_from_outcome(out))
 
     # ------------------------------------------------------------------ assembly
     def _remote_corner_callback(self, corner: str):
