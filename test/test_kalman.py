@@ -200,7 +200,7 @@ def test_absurd_uncertainties_carry_no_weight_and_do_not_break_the_solve():
     x[1] = 300.0
     unc = np.full(C.N_MEAS, 15.0)
     unc[:19] = 1e300  # R00 says: do not trust me
-    unc[19] = np.nan  # not reported: the default
+    unc[19] = 0.0  # not reported: the default
     res = ctl.step(at.intrinsic_nm + at.H @ x, uncertainty_nm=unc, stamp_ns=1)
     assert res.valid and np.all(np.isfinite(res.dof))
     assert res.dof[1] == pytest.approx(-300.0, rel=0.2)
@@ -254,3 +254,79 @@ def test_a_sudden_change_after_convergence_is_followed_at_once():
     x = x + res.dof
     after = np.linalg.norm(A @ x) / 2
     assert after < before / 4, (before, after)
+
+
+def test_data_no_telescope_could_give_is_refused_not_solved():
+    """One corner 19 um off on every term while the others are nominal, absurd values with
+    no Zernike limit, or nominal data claiming 1e-20 nm uncertainties: refused as
+    inconsistent (each used to drive an actuator to its stroke), state unchanged."""
+    ctl = KalmanOFC(OpticalModel("bundled"), max_abs_zernike_nm=None)
+    z0 = ctl.model.at(0.0).intrinsic_nm
+    noise = np.random.default_rng(1).normal(0, 10, C.N_MEAS)
+    unc = np.full(C.N_MEAS, 15.0)
+    wild = z0 + noise
+    wild[:19] += 19000.0
+    tight = KalmanOFC(OpticalModel("bundled"), KalmanSettings(model_floor_nm=0.5))
+    cases = [(ctl, wild, unc), (ctl, z0 + 1e300, unc),
+             (tight, z0 + noise, np.full(C.N_MEAS, 1e-20))]
+    for k, (c, y, u) in enumerate(cases):
+        res = c.step(y, uncertainty_nm=u, stamp_ns=k + 1)
+        assert not res.valid and res.status.startswith("inconsistent_measurement"), res.status
+        assert not np.any(res.dof) and c.n_steps == 0 and not np.any(c.dof_total)
+    # a large but real state within the strokes is not refused
+    x = np.zeros(C.N_DOF)
+    x[:10] = [50, 1000, -1000, 0.0083, -0.0083, -50, -1000, 1000, 0.0083, 0.0083]
+    res = ctl.step(z0 + ctl.model.at(0.0).H @ x, uncertainty_nm=unc, stamp_ns=10)
+    assert res.valid, res.status
+
+
+def test_uncertainties_that_are_not_one_sigmas_are_refused():
+    ctl = KalmanOFC(OpticalModel("bundled"))
+    z0 = ctl.model.at(0.0).intrinsic_nm
+    for bad in (np.nan, np.inf, -1.0):
+        u = np.full(C.N_MEAS, 15.0)
+        u[20] = bad
+        res = ctl.step(z0, uncertainty_nm=u, stamp_ns=1)
+        assert not res.valid and res.status.startswith("bad_uncertainty") and "R04" in res.status
+
+
+def test_rotator_slews_future_and_contradictory_samples():
+    h = RotatorHistory(tolerance_s=2.0)
+    now = 100 * 10**9
+    assert "ahead of the clock" in h.add(now + 86400 * 10**9, 0.0, now_ns=now, max_future_s=60)
+    assert h.add(now - 2 * 10**9, 0.0, now_ns=now, max_future_s=60) is None
+    assert "two rotator angles" in h.add(now - 2 * 10**9, 1.0)
+    assert h.add(now + 10**9, np.pi / 2) is None  # 90 deg in 3 s: a slew
+    a, why = h.angle_deg(now)
+    assert a is None and "slewing" in why
+    assert h.add(now + 3 * 10**9, np.pi / 2 + 0.001) is None  # then holding still
+    a, _ = h.angle_deg(now + 2 * 10**9)
+    assert a == pytest.approx(90.0, abs=0.1)
+
+
+def test_a_state_record_no_telescope_could_have_is_refused():
+    ctl = KalmanOFC(OpticalModel("bundled"))
+    good = state_record(ctl)
+    rng = ctl.spec.range
+    forged = [
+        {**good, "dof_total": 2 * rng},
+        {**good, "x": np.full(C.N_DOF, 1e300)},
+        {**good, "P": -good["P"]},
+        {**good, "controller": "bogus"},
+        {**good, "n_steps": "abc"},
+        {**good, "n_steps": -5},
+    ]
+    for rec in forged:
+        with pytest.raises(ConfigError, match="controller state"):
+            restore_record(KalmanOFC(OpticalModel("bundled")), rec)
+    assert "kalman state" in restore_record(KalmanOFC(OpticalModel("bundled")), good)
+
+
+def test_a_rotator_bin_costs_little_memory():
+    """Every 0.25-deg bin of a night is cached: the field matrix is shared, not copied."""
+    model = OpticalModel("bundled")
+    a, b = model.at(10.0), model.at(20.0)
+    assert a.F_tel is b.F_tel
+    own = sum(v.nbytes for k, v in vars(a).items() if isinstance(v, np.ndarray)
+              and k not in ("F_tel", "field_weights"))
+    assert own < 60_000, own

@@ -124,3 +124,41 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         tester.destroy_node()
         rclpy.shutdown(context=ctx)
         th.join(5)
+
+
+def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tmp_path):
+    """state_file under a regular file (no directory can be made there): the visit is
+    refused as state_not_saved, the controller is where it was, /diagnostics says ERROR;
+    the restart guarantee is never silently lost."""
+    from rclpy.parameter import Parameter
+
+    from cwfs_ros.nodes.ofc_node import OfcNode
+
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    ofc = OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("state_file", value=str(blocker / "ofc.json")),
+        Parameter("rotator_angle_source", value="fixed")])
+    try:
+        sent: list[DofCorrection] = []
+        ofc.pub.publish = sent.append  # what the node publishes, without a subscriber
+        m = WavefrontVector()
+        stamp = (time.time_ns() // SEC - 100) * SEC
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+        x = np.zeros(C.N_DOF)
+        x[1] = 300.0
+        sm = C.sensitivity_for_source("bundled")
+        m.zernikes_nm = C.intrinsic_vector_nm("r", sm.field_points_deg) + sm.matrix_nm @ x
+        m.corner_valid = [True] * 4
+        m.corners = ["R00", "R04", "R40", "R44"]
+        m.uncertainty_nm = np.full(C.N_MEAS, 10.0)
+        m.n_pairs = [1] * 4
+        ofc._on_vector(m)
+        assert len(sent) == 1 and not sent[0].valid, sent
+        assert sent[0].status.startswith("state_not_saved"), sent[0].status
+        assert ofc.solver.n_steps == 0 and not np.any(ofc.solver.dof_total)
+        st = ofc.diagnostics()
+        assert st.level == b"\x02" or st.level == 2, st.level  # ERROR
+        assert "state_not_saved" in st.message
+    finally:
+        ofc.destroy_node()

@@ -124,6 +124,7 @@ class OfcNode(Node):
         self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
         self.state_file = str(self._param("state_file"))
         self.state_problem: str | None = None
+        self.save_problem: str | None = None
         self._load_state()
         self.pub = self.create_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
@@ -219,6 +220,8 @@ class OfcNode(Node):
                          "covariance is inflated (the telescope moved).",
             "field_regularization_nm": "Pull of the correction towards the nominal state, nm "
                                        "of field RMS per prior sigma.",
+            "max_inconsistency": "Chi-square per term, against every state the DoF strokes "
+                                 "allow, above which a visit is refused as inconsistent.",
         }
         for name, what in text.items():
             d(name, describe(f"(kalman) {what}", fp_range=KALMAN_PARAM_RANGES[name]))
@@ -386,11 +389,12 @@ class OfcNode(Node):
                 angle, why = self._rotator_angle(stamp)
                 if problem is None and angle is None:
                     problem = f"no_rotator_angle: {why}"
+                before = state_record(self.solver) if self.state_file else None
                 out = self._refusal(problem) if problem is not None else self._step(
                     z, valid, np.asarray(msg.uncertainty_nm, dtype=np.float64), angle, stamp,
                     dry)
                 if out.valid and not dry:
-                    self._save_state()
+                    out = self._persist(out, before)
                 self._log_observability_change(out)
                 self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
@@ -421,7 +425,9 @@ class OfcNode(Node):
             bad = stamp_problem(msg.header.stamp)
             why = bad if bad is not None else (
                 "no position for camera_rotator" if i >= len(msg.position) else
-                self.rotator.add(stamp_to_ns(msg.header.stamp), float(msg.position[i])))
+                self.rotator.add(stamp_to_ns(msg.header.stamp), float(msg.position[i]),
+                                 now_ns=self.get_clock().now().nanoseconds,
+                                 max_future_s=self.solver.max_future_s))
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             why = f"{type(exc).__name__}: {exc}"
         with self._lock:
@@ -474,21 +480,35 @@ class OfcNode(Node):
             what = restore_record(self.solver, rec)
             self.get_logger().info(f"controller state restored from {self.state_file}: {what}, "
                                    f"last visit {self.solver.last_stamp_ns} ns")
-        except ConfigError as exc:
+        except (ConfigError, ValueError, TypeError, OverflowError) as exc:
+            self.solver.reset()  # nothing of a refused file stays in the controller
             # Never act from a state that may be wrong: refuse visits until an operator looks
             # (~/reset starts from the prior and overwrites the file).
             self.state_problem = f"state_file_unreadable: {exc}"
             self.get_logger().error(f"{exc}; every visit is refused until ~/reset")
 
-    def _save_state(self) -> None:
-        if not self.state_file:
-            return
+    def _persist(self, out: C.OFCResult, before: dict | None) -> C.OFCResult:
+        """Write the state of an applied visit before its correction is published.
+
+        Saved first, then published: a crash in between loses one correction (the next
+        visit's measurement shows it was never applied, and the filter takes that in) rather
+        than applying one twice after a restart. A state that cannot be written is not
+        applied at all: the controller goes back to ``before`` and the visit is refused, so
+        that the file never falls behind what the telescope was told.
+        """
+        if not self.state_file or before is None:
+            return out
         try:
             save_state(self.state_file, state_record(self.solver))
+            self.save_problem = None
+            return out
         except OSError as exc:
+            restore_record(self.solver, before)
             self.stats["state_saves_failed"] += 1
-            self.get_logger().error(f"controller state not saved to {self.state_file}: {exc}",
+            self.save_problem = f"state_not_saved: {self.state_file}: {exc}"
+            self.get_logger().error(f"{self.save_problem}; the visit is not applied",
                                     throttle_duration_sec=10.0)
+            return self._refusal(f"{self.save_problem}; correction withheld (state unchanged)")
 
     def _refusal(self, status: str) -> C.OFCResult:
         s = self.solver
@@ -528,6 +548,7 @@ class OfcNode(Node):
         with self._lock:
             n = self.solver.n_steps
             self.solver.reset()
+            self.rotator.clear()  # a bad rotator sample must not outlive a reset either
             self.stats["resets"] += 1
             self.state_problem = None
             saved = ""
@@ -535,9 +556,11 @@ class OfcNode(Node):
                 try:
                     save_state(self.state_file, state_record(self.solver))
                     saved = f"; {self.state_file} holds the cleared state"
+                    self.save_problem = None
                 except OSError as exc:
                     saved = f"; {self.state_file} NOT updated: {exc}"
-        response.success = True
+                    self.save_problem = f"state_not_saved: {self.state_file}: {exc}"
+        response.success = self.save_problem is None
         response.message = f"controller state cleared (it had accumulated {n} visit(s)){saved}"
         self.get_logger().info(response.message)
         return response
@@ -560,8 +583,8 @@ class OfcNode(Node):
                       ("last_step_ms", f"{self.last_ms:.2f}")]
         values += self.refused.key_values()
         values += self._guard_values()
-        if self.state_problem is not None:
-            level, message = ERROR, self.state_problem
+        if self.state_problem is not None or self.save_problem is not None:
+            level, message = ERROR, str(self.state_problem or self.save_problem)
         elif self.foreign:
             level, message = WARN, f"another publisher on the correction topic: {self.foreign[0]}"
         elif self.refused.recent(10.0):

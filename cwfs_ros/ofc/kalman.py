@@ -58,9 +58,10 @@ KALMAN_PARAM_RANGES: dict[str, tuple[float, float]] = {
     "min_snr": (0.0, 1e3),
     "gain": (0.01, 1.0),
     "default_uncertainty_nm": (0.1, 1e4),
-    "model_floor_nm": (0.0, 1e4),
+    "model_floor_nm": (0.5, 1e4),
     "nis_limit": (1.0, 1e6),
     "field_regularization_nm": (0.0, 1e3),
+    "max_inconsistency": (1.0, 1e6),
 }
 
 
@@ -78,6 +79,8 @@ class KalmanSettings:
     nis_limit : normalised innovation squared per term above which the covariance is inflated.
     field_regularization_nm : weight of the pull towards the nominal state, nm of field RMS
         per prior sigma.
+    max_inconsistency : chi-square per term, against every state the strokes allow, above
+        which a measurement is refused as inconsistent.
     """
 
     prior_fraction: float = 0.2
@@ -89,6 +92,7 @@ class KalmanSettings:
     model_floor_nm: float = 5.0
     nis_limit: float = 4.0
     field_regularization_nm: float = 1.0
+    max_inconsistency: float = 25.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -107,6 +111,23 @@ class _Update:
     obs: Observability
     nis: float  # normalised innovation squared per term, before any inflation
     inflated: float  # factor the predicted covariance was multiplied by
+
+
+def _uncertainty_problem(uncertainty_nm: np.ndarray | Sequence[float] | None,
+                         rows: np.ndarray) -> str | None:
+    """A reported uncertainty of a used corner that is not a 1-sigma: NaN, inf or negative
+    (0 means "not reported" and takes the default)."""
+    if uncertainty_nm is None:
+        return None
+    u = np.asarray(uncertainty_nm, dtype=np.float64).reshape(-1)
+    if u.size != rows.size:
+        return f"bad_uncertainty: {u.size} uncertainties for {rows.size} Zernike terms"
+    bad = rows & ~(np.isfinite(u) & (u >= 0))
+    if bad.any():
+        names = sorted({C.CORNER_NAMES[i // C.N_ZK] for i in np.flatnonzero(bad)})
+        return (f"bad_uncertainty: uncertainty_nm of {', '.join(names)} holds NaN, inf or "
+                f"negative values ({int(bad.sum())} terms); 0 means not reported")
+    return None
 
 
 class KalmanOFC(C.OFCSolver):
@@ -211,10 +232,9 @@ class KalmanOFC(C.OFCSolver):
         hi = np.maximum(hi, lo)
         return lsq_linear(A, b, bounds=(lo, hi + 1e-300), method="bvls").x
 
-    def _field_rms(self, at: ModelAtAngle, x: np.ndarray) -> float:
-        w = at.F[:, self.dof_mask] @ x
-        return float(np.sqrt(np.sum(at.field_weights * np.sum(
-            w.reshape(-1, C.N_ZK) ** 2, axis=1))))
+    def _field_rms(self, F: np.ndarray, weights: np.ndarray, x: np.ndarray) -> float:
+        w = F[:, self.dof_mask] @ x
+        return float(np.sqrt(np.sum(weights * np.sum(w.reshape(-1, C.N_ZK) ** 2, axis=1))))
 
     # ---------------------------------------------------------------- step
     def step(self, measured_nm: np.ndarray | Sequence[float],  # type: ignore[override]
@@ -235,25 +255,71 @@ class KalmanOFC(C.OFCSolver):
             problem = f"bad_rotator_angle: {rotator_angle_deg!r}"
         if problem is not None:
             return self._refused(problem, (), t0, rotator_angle_deg)
-        at = self.model.at(rotator_angle_deg)
-        checked = self.check_visit(measured_nm, corner_valid, at.intrinsic_nm)
+        # The input checks first, against the unrotated design (only its non-zero corners
+        # matter there): refused input never builds a rotator bin's model.
+        checked = self.check_visit(measured_nm, corner_valid)
         if isinstance(checked, C.Refusal):
             return self._refused(checked.status, checked.corners, t0, rotator_angle_deg)
+        corners = tuple(bool(c) for c in checked.corner_valid)
+        bad_unc = _uncertainty_problem(uncertainty_nm, checked.rows)
+        if bad_unc is not None:
+            return self._refused(bad_unc, corners, t0, rotator_angle_deg)
+        at = self.model.at(rotator_angle_deg)
         rows = checked.rows
         r = (at.to_telescope(checked.y) - at.intrinsic_nm)[rows]
         cov = measurement_covariance(uncertainty_nm, rows, at.zrot,
                                      default_nm=self.settings.default_uncertainty_nm,
                                      floor_nm=self.settings.model_floor_nm)
-        upd = self._update(at, r, rows, cov)
-        corners = tuple(bool(c) for c in checked.corner_valid)
+        try:
+            problem = self._inconsistency(at, r, rows, cov)
+            upd = None if problem else self._update(at, r, rows, cov)
+        except np.linalg.LinAlgError as exc:
+            problem = (f"ill_conditioned: the measurement covariance cannot be factorised "
+                       f"({exc}); check the corners' uncertainty_nm")
+        if problem is not None:
+            return self._refused(problem, corners, t0, rotator_angle_deg)
         if upd.obs.n_kept == 0:
             return self._refused(self._unobservable_message(upd.obs), corners, t0,
                                  rotator_angle_deg)
         u_m = self._correction(at, upd.x)
-        if not (np.all(np.isfinite(u_m)) and np.all(np.isfinite(upd.P))):
-            return self._refused("non_finite_result: the filter gave NaN/inf; state unchanged",
-                                 corners, t0, rotator_angle_deg)
+        if not self._finite_outcome(upd, u_m):
+            return self._refused("non_finite_result: the filter gave NaN/inf or a state beyond "
+                                 "any stroke; state unchanged", corners, t0, rotator_angle_deg)
         return self._finish(at, r, rows, upd, u_m, corners, stamp_ns, dry_run, t0)
+
+    def _inconsistency(self, at: ModelAtAngle, r: np.ndarray, rows: np.ndarray,
+                       cov: np.ndarray) -> str | None:
+        """Why no telescope state within the strokes explains this measurement, or None.
+
+        A chi-square test of ``r`` against every state the DoF strokes allow (covariance
+        ``H diag(range²) Hᵀ + R``): a corner far off while the others are nominal, or
+        wavefronts beyond any DoF's reach, is data no telescope could give, and is refused
+        rather than solved (it would drive the actuators to their strokes).
+        """
+        m = self.dof_mask
+        H = at.H[np.ix_(rows, m)]
+        S = (H * self.spec.range[m] ** 2) @ H.T + cov
+        with np.errstate(over="ignore", invalid="ignore"):
+            nis = float(r @ np.linalg.solve(S, r)) / r.size
+        if not np.isfinite(nis) or nis > self.settings.max_inconsistency:
+            return (f"inconsistent_measurement: no telescope state within the DoF strokes "
+                    f"explains this wavefront (chi2 per term {nis:.3g} > max_inconsistency "
+                    f"{self.settings.max_inconsistency:g}); a corner is wrong or its "
+                    "uncertainty too small")
+        return None
+
+    def _finite_outcome(self, upd: _Update, u_m: np.ndarray) -> bool:
+        """The posterior, the correction and the next prediction are finite and within
+        ten strokes (a filter state beyond that is an arithmetic accident, never physics)."""
+        m = self.dof_mask
+        lim = 10.0 * self.spec.range[m]
+        q = (self.settings.correction_error * u_m) ** 2
+        with np.errstate(over="ignore", invalid="ignore"):
+            ok = (np.all(np.isfinite(u_m)) and np.all(np.isfinite(upd.x))
+                  and np.all(np.isfinite(upd.P)) and np.all(np.isfinite(q))
+                  and np.all(np.abs(upd.x) <= lim)
+                  and np.all(np.abs(self.dof_total[m] + u_m) <= lim))
+        return bool(ok)
 
     def _finish(self, at: ModelAtAngle, r: np.ndarray, rows: np.ndarray, upd: _Update,
                 u_m: np.ndarray, corners: tuple[bool, ...], stamp_ns: int | None,
@@ -272,7 +338,8 @@ class KalmanOFC(C.OFCSolver):
         status = "ok" if upd.inflated == 1.0 else (
             f"ok: innovation {upd.nis:.3g} per term > nis_limit "
             f"{self.settings.nis_limit:g}, covariance inflated x{upd.inflated:.3g}")
-        dropped_cost = self._dropped_field_cost(at, upd.obs)
+        F = at.F
+        dropped_cost = self._dropped_field_cost(F, at.field_weights, upd.obs)
         total = self.dof_total + u
         if not dry_run:
             self._advance(upd, u_m, total, stamp_ns)
@@ -280,8 +347,9 @@ class KalmanOFC(C.OFCSolver):
             u, total, True, status, C._rms(r, n_used), C._rms(r + H @ u_m, n_used),  # noqa: SLF001
             upd.obs.n_kept, self._full(upd.x),
             clipped, float(upd.obs.snr[0] / max(upd.obs.snr[upd.obs.n_kept - 1], 1e-300)),
-            corners, time.perf_counter() - t0, sigma, self._field_rms(at, upd.x),
-            self._field_rms(at, upd.x + u_m), at.angle_deg,
+            corners, time.perf_counter() - t0, sigma,
+            self._field_rms(F, at.field_weights, upd.x),
+            self._field_rms(F, at.field_weights, upd.x + u_m), at.angle_deg,
             upd.obs.describe_dropped([self.spec.names[i] for i in np.flatnonzero(m)],
                                      dropped_cost),
             int(upd.obs.dropped_dirs.shape[0]))
@@ -306,12 +374,13 @@ class KalmanOFC(C.OFCSolver):
         out[self.dof_mask] = x_m
         return out
 
-    def _dropped_field_cost(self, at: ModelAtAngle, obs: Observability) -> np.ndarray:
+    def _dropped_field_cost(self, F: np.ndarray, weights: np.ndarray,
+                            obs: Observability) -> np.ndarray:
         """Field RMS [nm] of a one-prior-sigma excursion along each dropped direction."""
         if obs.dropped_dirs.shape[0] == 0:
             return np.zeros(0)
         dirs = obs.dropped_dirs * self.prior_sigma[self.dof_mask][None, :]
-        return np.array([self._field_rms(at, d) for d in dirs])
+        return np.array([self._field_rms(F, weights, d) for d in dirs])
 
     def _unobservable_message(self, obs: Observability) -> str:
         names = [self.spec.names[i] for i in np.flatnonzero(self.dof_mask)]

@@ -45,7 +45,12 @@ BUNDLED_DZ_FILENAME = "sensitivity_dz_bundled.npy"
 
 @dataclass(frozen=True)
 class ModelAtAngle:
-    """The optical model at one rotator angle (all arrays read-only)."""
+    """The optical model at one rotator angle (all arrays read-only).
+
+    About 40 kB per angle: the field sensitivity is shared by every angle and turned into
+    the actuators' DoF on use (:attr:`F`), so that the cache of every bin a night visits
+    stays small.
+    """
 
     angle_deg: float
     corner_fields_deg: np.ndarray  # (4, 2) telescope frame
@@ -53,8 +58,13 @@ class ModelAtAngle:
     dofrot: np.ndarray  # (50, 50) actuator DoF -> telescope-frame DoF
     H: np.ndarray  # (76, 50) nm per DoF unit
     intrinsic_nm: np.ndarray  # (76,) telescope frame
-    F: np.ndarray  # (31 * 19, 50) nm per DoF unit at the quadrature points
+    F_tel: np.ndarray  # (31 * 19, 50) nm per telescope-frame DoF unit at the GQ points
     field_weights: np.ndarray  # (31,)
+
+    @property
+    def F(self) -> np.ndarray:
+        """(31 * 19, 50) nm per actuator DoF unit at the quadrature points (computed, ~1 ms)."""
+        return self.F_tel @ self.dofrot
 
     def to_telescope(self, y_cam: np.ndarray) -> np.ndarray:
         """(76,) camera-frame corner Zernikes -> telescope frame."""
@@ -124,8 +134,8 @@ class OpticalModel:
     source : ``"bundled"`` or ``"ts_ofc"`` (the sensitivity data).
     band : band of the design wavefront subtracted (``u g r i z y ref``).
     angle_bin_deg : the rotator angle is rounded to this before the model is built; an
-        angle's model is cached (``cache_size`` bins: the live workload's range of angles
-        per night at 0.25 deg fits 2,000 bins, a few MB).
+        angle's model is cached (``cache_size`` bins: every 0.25 deg bin of the rotator's
+        whole range fits, about 40 kB each, 80 MB at most).
     """
 
     def __init__(self, source: str = "bundled", band: str = "r", *,
@@ -145,6 +155,7 @@ class OpticalModel:
             else "ts_ofc"
         gq = gq_field_points_deg()
         self._F_tel = double_zernike_at(_dz_nm(self.field_source), gq).reshape(-1, C.N_DOF)
+        self._F_tel.setflags(write=False)
         self._weights = gq_weights()
         self._at = lru_cache(maxsize=cache_size)(self._build)
 
@@ -171,12 +182,11 @@ class OpticalModel:
         dofrot = rotation.dof_rotation_matrix(theta)
         H = self._corner_matrix(fields, angle_deg) @ dofrot
         intr = double_zernike_at(_intrinsic_dz_nm(self.band), fields).reshape(-1)
-        F = self._F_tel @ dofrot
         arrays = [np.ascontiguousarray(a, dtype=np.float64)
-                  for a in (fields, zrot, dofrot, H, intr, F)]
+                  for a in (fields, zrot, dofrot, H, intr)]
         for a in arrays:
             a.setflags(write=False)
-        return ModelAtAngle(float(angle_deg), *arrays, self._weights)
+        return ModelAtAngle(float(angle_deg), *arrays, self._F_tel, self._weights)
 
 
 def bundled_dz_path() -> Path:

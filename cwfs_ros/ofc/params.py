@@ -57,14 +57,46 @@ def state_record(ctl: C.OFCSolver) -> dict[str, Any]:
             "n_steps": n_steps, "last_stamp_ns": last, "ki": ki}
 
 
-def _array(rec: dict[str, Any], key: str, shape: tuple[int, ...]) -> np.ndarray:
+# A state beyond this many strokes is no telescope's: a corrupted or forged file.
+_STATE_STROKES = 10.0
+
+
+def _array(rec: dict[str, Any], key: str, shape: tuple[int, ...],
+           limit: np.ndarray | None = None) -> np.ndarray:
     try:
         a = np.asarray(rec[key], dtype=np.float64)
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise ConfigError(f"controller state: {key} missing or not numbers ({exc})") from exc
     if a.shape != shape or not np.all(np.isfinite(a)):
         raise ConfigError(f"controller state: {key} must be {shape} finite numbers")
+    if limit is not None and np.any(np.abs(a) > limit):
+        i = int(np.argmax(np.abs(a) / limit))
+        raise ConfigError(f"controller state: {key}[{i}] = {a.flat[i]:.4g} is beyond "
+                          f"{_STATE_STROKES:g} strokes of that DoF")
     return a
+
+
+def _covariance(rec: dict[str, Any], rng: np.ndarray) -> np.ndarray:
+    """The filter covariance of a record: symmetric, positive semi-definite, each variance
+    within (10 strokes)²."""
+    P = _array(rec, "P", (C.N_DOF, C.N_DOF))
+    scale = float(np.max(np.abs(P))) or 1.0
+    if np.max(np.abs(P - P.T)) > 1e-9 * scale:
+        raise ConfigError("controller state: P is not symmetric")
+    if np.any(np.diag(P) > (_STATE_STROKES * rng) ** 2):
+        raise ConfigError(f"controller state: a variance of P is beyond {_STATE_STROKES:g} "
+                          "strokes")
+    w = np.linalg.eigvalsh(P / np.outer(rng, rng))  # in stroke units: comparable entries
+    if w.min() < -1e-9 * max(w.max(), 1e-300):
+        raise ConfigError("controller state: P is not a covariance (a negative eigenvalue)")
+    return P
+
+
+def _count(rec: dict[str, Any], key: str) -> int:
+    v = rec.get(key, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ConfigError(f"controller state: {key} must be an integer >= 0, got {v!r}")
+    return v
 
 
 def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
@@ -73,20 +105,28 @@ def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
     A record of the other controller kind restores the accumulated DoF, the step count and
     the last stamp only (the filter or the integral restarts).
     """
-    dof_total = _array(rec, "dof_total", (C.N_DOF,))
+    rng = ctl.spec.range
+    lim = _STATE_STROKES * rng
+    kind = rec.get("controller")
+    if kind not in CONTROLLERS:
+        raise ConfigError(f"controller state: controller must be one of {CONTROLLERS}, "
+                          f"got {kind!r}")
+    dof_total = _array(rec, "dof_total", (C.N_DOF,), rng * (1 + 1e-9) if
+                       ctl.clip_range is not None else lim)
     last = rec.get("last_stamp_ns")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 0):
         raise ConfigError(f"controller state: last_stamp_ns must be an integer, got {last!r}")
-    n_steps = int(rec.get("n_steps", 0))
-    kind = rec.get("controller")
+    n_steps = _count(rec, "n_steps")
     if isinstance(ctl, KalmanOFC) and kind == "kalman":
-        ctl.restore({"dof_total": dof_total, "x": _array(rec, "x", (C.N_DOF,)),
-                     "P": _array(rec, "P", (C.N_DOF, C.N_DOF)), "n_steps": n_steps,
-                     "last_stamp_ns": last})
+        ctl.restore({"dof_total": dof_total, "x": _array(rec, "x", (C.N_DOF,), lim),
+                     "P": _covariance(rec, rng), "n_steps": n_steps, "last_stamp_ns": last})
         return f"kalman state of {n_steps} visit(s)"
     if not isinstance(ctl, KalmanOFC) and kind == "pid":
-        ctl.restore((dof_total, _array(rec, "integral", (C.N_DOF,)), n_steps, last,
-                     float(rec.get("ki", ctl.ki))))
+        ki = rec.get("ki", ctl.ki)
+        if isinstance(ki, bool) or not isinstance(ki, (int, float)) or not 0 <= ki <= 1:
+            raise ConfigError(f"controller state: ki must be in [0, 1], got {ki!r}")
+        ctl.restore((dof_total, _array(rec, "integral", (C.N_DOF,), lim), n_steps, last,
+                     float(ki)))
         return f"pid state of {n_steps} visit(s)"
     ctl.reset()
     ctl.dof_total, ctl.n_steps, ctl.last_stamp_ns = dof_total.copy(), n_steps, last

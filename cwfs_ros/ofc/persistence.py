@@ -54,8 +54,13 @@ def load_state(path: str | Path) -> dict[str, Any] | None:
     file that is not a state of this version (an operator must look, not a silent restart
     from zero)."""
     p = Path(path).expanduser()
+    # Temporary files of writes that a crash interrupted (save_state's own prefix).
+    for tmp in p.parent.glob(f".{p.name}.*") if p.parent.is_dir() else ():
+        tmp.unlink(missing_ok=True)
     if not p.exists():
         return None
+    if not p.is_file():
+        raise ConfigError(f"controller state {p}: not a file")
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -15,12 +15,15 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["ROTATOR_JOINT", "RotatorHistory"]
+__all__ = ["MAX_RATE_DEG_S", "ROTATOR_JOINT", "RotatorHistory"]
 
 #: Name of the camera rotator's joint in ``sensor_msgs/JointState`` (position in radians).
 ROTATOR_JOINT = "camera_rotator"
 #: No rotator turns further than one turn either way [rad].
 MAX_ANGLE_RAD = 2.0 * np.pi
+#: Faster than this between two samples is a slew (LSST's rotator turns at up to 3.5 deg/s):
+#: an exposure is not taken then, and the angle is refused rather than interpolated.
+MAX_RATE_DEG_S = 10.0
 
 
 class RotatorHistory:
@@ -38,8 +41,11 @@ class RotatorHistory:
         self._stamps.clear()
         self._angles.clear()
 
-    def add(self, stamp_ns: int, angle_rad: float) -> str | None:
-        """Record a sample; returns why it was ignored (non-finite, unset or older stamp)."""
+    def add(self, stamp_ns: int, angle_rad: float, now_ns: int | None = None,
+            max_future_s: float | None = None) -> str | None:
+        """Record a sample; returns why it was ignored (non-finite, beyond one turn, unset,
+        older than the last, ahead of ``now_ns`` by more than ``max_future_s``, or a second
+        angle at the last sample's stamp)."""
         if not np.isfinite(angle_rad):
             return f"non-finite rotator position {angle_rad!r}"
         if abs(angle_rad) > MAX_ANGLE_RAD:
@@ -47,6 +53,15 @@ class RotatorHistory:
                     "(one turn either way): not a rotator angle")
         if stamp_ns <= 0:
             return "rotator sample with an unset stamp"
+        if now_ns is not None and max_future_s is not None and \
+                stamp_ns > now_ns + max_future_s * 1e9:
+            return (f"rotator sample stamped {(stamp_ns - now_ns) / 1e9:.4g} s ahead of the "
+                    f"clock (max_future_s {max_future_s:g})")
+        if self._stamps and stamp_ns == self._stamps[-1]:
+            if abs(np.rad2deg(angle_rad) - self._angles[-1]) > 1e-9:
+                return (f"two rotator angles at one stamp ({self._angles[-1]:.6g} and "
+                        f"{np.rad2deg(angle_rad):.6g} deg): the second is ignored")
+            return None
         if self._stamps and stamp_ns < self._stamps[-1]:
             return (f"rotator sample at {stamp_ns} ns is older than the last one "
                     f"({self._stamps[-1]} ns)")
@@ -63,7 +78,12 @@ class RotatorHistory:
         if 0 < i < len(stamps) and stamps[i] - stamps[i - 1] <= 2 * self.tolerance_ns:
             t0, t1 = stamps[i - 1], stamps[i]
             a0, a1 = self._angles[i - 1], self._angles[i]
-            w = (stamp_ns - t0) / (t1 - t0) if t1 > t0 else 0.0
+            rate = abs(a1 - a0) / ((t1 - t0) / 1e9)
+            if rate > MAX_RATE_DEG_S:
+                return None, (f"the camera rotator was slewing at the visit ({a0:.4g} -> "
+                              f"{a1:.4g} deg in {(t1 - t0) / 1e9:.3g} s, {rate:.3g} deg/s > "
+                              f"{MAX_RATE_DEG_S:g})")
+            w = (stamp_ns - t0) / (t1 - t0)
             return a0 + w * (a1 - a0), "interpolated"
         near = min((j for j in (i - 1, i) if 0 <= j < len(stamps)),
                    key=lambda j: abs(stamps[j] - stamp_ns))
