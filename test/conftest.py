@@ -82,6 +82,37 @@ def spin_thread(executor) -> threading.Thread:
     return threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
 
 
+@pytest.fixture
+def spin(ros_context):
+    """The project's executor spinning in a thread on the test's context; yields
+    ``add(node)``, and destroys the added nodes after the test."""
+    from cwfs_ros.nodes.executor import MultiThreadedExecutor
+
+    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
+    th = spin_thread(ex)
+    nodes = []
+
+    def add(node):
+        nodes.append(node)
+        ex.add_node(node)
+        return node
+
+    th.start()
+    yield add
+    ex.shutdown(timeout_sec=2.0)
+    for n in nodes:
+        n.destroy_node()
+
+
+def kill_group(proc) -> None:
+    """SIGKILL a process started with ``start_new_session=True`` and its whole group."""
+    import signal
+
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+
+
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """In CI (CWFS_CI=1) a skipped test fails the run.
 

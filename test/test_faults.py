@@ -11,7 +11,6 @@ correction; visit A, whose images were half lost with the old node, never gets a
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import spin_thread, wait_for
+from conftest import kill_group, spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -67,10 +66,6 @@ def _start_node(domain: int) -> subprocess.Popen:
                             stderr=subprocess.DEVNULL, start_new_session=True)
 
 
-def _kill(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
 
 
 def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ros_domain):
@@ -125,7 +120,7 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
         publish(stamp_a, keys[:5])            # R00, R04 complete; R40 intra only
         wait_for(lambda: bool(images_seen) and images_seen[-1] >= 5, 10,
                  "the node to hold half a visit (its diagnostics count the 5 images)")
-        _kill(proc)
+        kill_group(proc)
         n_ready = len(ready_at)
         images_seen.clear()
         t_kill = time.monotonic()
@@ -152,7 +147,7 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
         assert set(by_stamp) <= {stamp_a, stamp_b}
         print(f"\nvisit A: {[d.status for d in a]}; visit B: {b.status}")
     finally:
-        _kill(proc)
+        kill_group(proc)
         ex.shutdown(timeout_sec=2.0)
         th.join(5)
         ofc.destroy_node()

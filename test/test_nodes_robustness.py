@@ -25,7 +25,6 @@ from cwfs_ros.core import control as C  # noqa: E402
 from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
 from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
 
@@ -36,30 +35,13 @@ SEC = 1_000_000_000
 VISIT = 40 * SEC  # a survey visit's period (ofc_node refuses visits closer than 2 s)
 
 
-from conftest import spin_thread, wait_for  # noqa: E402
+from conftest import wait_for  # noqa: E402
 
 
 def of(msgs, stamp):
     return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
 
 
-@pytest.fixture
-def spin(ros_context):
-    """An executor spinning in a thread on the test's context; yields add(node)."""
-    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    th = spin_thread(ex)
-    nodes = []
-
-    def add(node):
-        nodes.append(node)
-        ex.add_node(node)
-        return node
-
-    th.start()
-    yield add
-    ex.shutdown(timeout_sec=2.0)
-    for n in nodes:
-        n.destroy_node()
 
 
 def raw_image(stamp, *, h=160, w=160, encoding="32FC1", step=None, data=None):

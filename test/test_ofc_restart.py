@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import spin_thread, wait_for
+from conftest import kill_group, spin_thread, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -47,10 +46,6 @@ def _start_ofc(domain: int, state_file: Path) -> subprocess.Popen:
                             stderr=subprocess.DEVNULL, start_new_session=True)
 
 
-def _kill(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
 
 
 def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_path):
@@ -101,7 +96,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         total_5 = np.asarray(d.dof_total)
         saved = json.loads(state_file.read_text())
         assert saved["last_stamp_ns"] == t0 + 5 * 40 * SEC and saved["n_steps"] == 5
-        _kill(proc)
+        kill_group(proc)
         wait_for(lambda: pub.get_subscription_count() == 0, 30, "the old node to vanish")
         proc = _start_ofc(ros_domain, state_file)
         wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to restart")
@@ -119,7 +114,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         # far below the prior of a first visit (0.2 x 6700 um for M2_dx)
         assert 0 < d6.dof_uncertainty[1] < 0.1 * 0.2 * 6700
     finally:
-        _kill(proc)
+        kill_group(proc)
         ex.shutdown()
         tester.destroy_node()
         rclpy.shutdown(context=ctx)

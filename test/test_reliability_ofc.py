@@ -109,28 +109,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
-
-
-@pytest.fixture
-def spin(ros_context):
-    from conftest import spin_thread
-
-    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    th = spin_thread(ex)
-    nodes = []
-
-    def add(node):
-        nodes.append(node)
-        ex.add_node(node)
-        return node
-
-    th.start()
-    yield add
-    ex.shutdown(timeout_sec=2.0)
-    for n in nodes:
-        n.destroy_node()
 
 
 def _vector(stamp: int, z: np.ndarray, unc=None, pairs=None) -> WavefrontVector:
