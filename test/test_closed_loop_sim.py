@@ -7,8 +7,9 @@ scaled to 600 nm of wavefront error (design removed, mean over corners of
 sqrt(sum Z4..Z22^2)), computed from its own ray-traced truth. Visits are triggered one at a
 time, each after the previous correction has been applied.
 
-Target of the closed-loop issue: at least 5x within 5 visits. This small configuration
-(2e5 photons per donut, 4 visits = 3 corrections) must already reach it.
+Targets of the closed-loop issue: the corner error at least 5x lower within 5 visits, and
+the error over the science field 10x lower within 4 visits. This small configuration (2e5
+photons per donut, 4 visits = 3 corrections) must already reach both.
 """
 
 from __future__ import annotations
@@ -49,7 +50,13 @@ def test_closed_loop_converges_5x(ros_domain, tmp_path):
                                    rtol=0, atol=1e-9)
     assert 570.0 < e[0] < 630.0, e
     assert e[-1] < e[0] / 5.0, e
-    assert all(b < a for a, b in zip(e[:3], e[1:3], strict=False)), e
+    # The Kalman controller takes most of a large error in its first correction (the prior
+    # is wide, so the filter's gain is near 1); after that the error sits at the estimator's
+    # noise floor (40-60 nm here at 2e5 photons), not falling monotonically.
+    assert e[1] < e[0] / 5.0, e
+    f = run.field_error_nm
+    print(f"field error per visit (nm) {np.round(f, 1).tolist()}")
+    assert np.all(np.isfinite(f)) and f[0] / np.min(f[1:4]) >= 10.0, f
 
 
 def test_wavefront_error_figure_of_merit():
