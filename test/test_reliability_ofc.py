@@ -38,8 +38,14 @@ def test_bounds_are_design_plus_reach_plus_margin(bounds):
     a = C.SensitivityMatrix.from_bundled().matrix_nm
     spec = C.load_dof_spec()
     # The largest |A_i x| over the box is at a vertex: x_j = range_j sign(A_ij).
-    vertex = np.abs(a @ (spec.range[None, :] * np.sign(a)).T).diagonal()
-    np.testing.assert_allclose(bounds.reach_nm, vertex, rtol=1e-12)
+    vertex = np.abs(a @ (spec.range[None, :] * np.sign(a)).T).diagonal().reshape(4, 19).copy()
+    # The rotator mixes each azimuthal (cos, sin) pair of a corner: both terms are bounded by
+    # the pair's norm. Noll pairs among Z4..Z22 (Noll's table): 5-6, 7-8, 9-10, 12-13, 14-15,
+    # 16-17, 18-19, 20-21.
+    for j, k in ((5, 6), (7, 8), (9, 10), (12, 13), (14, 15), (16, 17), (18, 19), (20, 21)):
+        h = np.hypot(vertex[:, j - 4], vertex[:, k - 4])
+        vertex[:, j - 4] = vertex[:, k - 4] = h
+    np.testing.assert_allclose(bounds.reach_nm, vertex.reshape(-1), rtol=1e-12)
     assert np.all(bounds.bound_nm() >= bounds.reach_nm + 300.0)
     u = np.full(76, 10.0)
     np.testing.assert_allclose(bounds.bound_nm(u, 5.0) - bounds.bound_nm(), 50.0)
@@ -130,7 +136,8 @@ def test_node_integrates_a_restamped_flood_once(ros_context, spin):
     one correction is integrated; the rest get none and are counted."""
     from conftest import wait_for
 
-    ofc = spin(OfcNode(context=ros_context))
+    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed")]))  # no rotator on this bench
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     out: list[DofCorrection] = []
@@ -159,7 +166,8 @@ def test_node_integrates_a_restamped_flood_once(ros_context, spin):
 def test_node_refuses_implausible_and_unmeasured_corners(ros_context, spin):
     from conftest import wait_for
 
-    ofc = spin(OfcNode(context=ros_context))
+    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed")]))  # no rotator on this bench
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     out: list[DofCorrection] = []
@@ -197,7 +205,8 @@ def test_node_counts_what_its_queue_dropped(ros_context, spin):
     from conftest import wait_for
 
     ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
-        Parameter("min_visit_period_s", value=0.0)]))
+        Parameter("min_visit_period_s", value=0.0),
+        Parameter("rotator_angle_source", value="fixed")]))
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE))
