@@ -103,6 +103,23 @@ def corner_fields() -> list[tuple[str, tuple, tuple]]:
             for n, c in CORNERS.items()]
 
 
+def zemax_saturation_refusals() -> tuple[int, int]:
+    """The noise-free ZEMAX/FAM model donuts of test/data/zemax: (refused as saturated,
+    images)."""
+    n_img = hits = 0
+    for f in sorted((REPO / "test" / "data" / "zemax").glob("*/*.txt")):
+        if f.name.startswith(("zn_", "ccd")) or f.parent.name == "reference-outputs":
+            continue
+        img = read_image(f)
+        try:
+            prepare_donut(img, name="intra", outer_radius_px=0.42 * min(img.shape),
+                          margin_px=3.0)
+        except ImageError as exc:
+            hits += exc.reason == "saturated"
+        n_img += 1
+    return hits, n_img
+
+
 def bench_saturation(pairs: list[dict], seeds: int, rng: np.random.Generator) -> None:
     print("\n== saturation: genuine donuts (false positives) — rejected as saturated / total")
     fp = defaultdict(lambda: [0, 0])
@@ -125,18 +142,7 @@ def bench_saturation(pairs: list[dict], seeds: int, rng: np.random.Generator) ->
         rej = {r: c for (k, r), c in other.items() if k == key}
         print(f"  {key[0]:7.0e} photons, sky {key[1]:4.0f}, {key[2]:6s}: {n_sat}/{n}"
               + (f"   (other rejections: {rej})" if rej else ""))
-    n_img = 0
-    hits = 0
-    for f in sorted((REPO / "test" / "data" / "zemax").glob("*/*.txt")):
-        if f.name.startswith(("zn_", "ccd")) or f.parent.name == "reference-outputs":
-            continue
-        img = read_image(f)
-        try:
-            prepare_donut(img, name="intra", outer_radius_px=0.42 * min(img.shape),
-                          margin_px=3.0)
-        except ImageError as exc:
-            hits += exc.reason == "saturated"
-        n_img += 1
+    hits, n_img = zemax_saturation_refusals()
     print(f"  ZEMAX/FAM test images (test/data/zemax): {hits}/{n_img} rejected as saturated")
 
     print("\n== saturation: damaged donuts (detection) — rejected as saturated / total")

@@ -117,21 +117,7 @@ def bench_plateau(pairs: list[dict], seeds: int, rng: np.random.Generator) -> No
                     other[r] += 1
         print(f"  {photons:7.0e} photons: {sat}/{n}" + (f"  (other: {dict(other)})"
                                                       if other else ""))
-    from cwfs_ros.core.donuts import prepare_donut
-    from cwfs_ros.core.errors import ImageError
-    from cwfs_ros.core.io import read_image
-
-    n_img = hits = 0
-    for f in sorted((BIC.REPO / "test" / "data" / "zemax").glob("*/*.txt")):
-        if f.name.startswith(("zn_", "ccd")) or f.parent.name == "reference-outputs":
-            continue
-        img = read_image(f)
-        try:
-            prepare_donut(img, name="intra", outer_radius_px=0.42 * min(img.shape),
-                          margin_px=3.0)
-        except ImageError as exc:
-            hits += exc.reason == "saturated"
-        n_img += 1
+    hits, n_img = BIC.zemax_saturation_refusals()
     print(f"  ZEMAX/FAM model images (test/data/zemax, noise-free): {hits}/{n_img} refused "
           "as saturated")
 

@@ -324,27 +324,17 @@ class _Pipeline:
     def _ofc(self, vec: Any) -> None:
         import numpy as np
 
-        from .core import control
-        from .ofc.kalman import KalmanOFC
+        from .ofc.params import rotator_angle_for, step_controller
 
         # The visit-order rules of ofc_node (OFCSolver.step); not the clock's: a bag's
         # stamps are in the past of any clock it is replayed by.
-        z = np.asarray(vec.zernikes_nm, dtype=np.float64)
-        valid = np.asarray(vec.corner_valid, dtype=bool)
-        unc = getattr(vec, "uncertainty_nm", None)
-        if self.ofc_params["rotator_angle_source"] == "fixed":
-            angle, why = float(self.ofc_params["rotator_angle_deg"]), ""
-        else:
-            angle, why = self.rotator.angle_deg(int(vec.stamp_ns))
-        if angle is None:
-            out = control.OFCResult(np.zeros(control.N_DOF), self.solver.dof_total.copy(),
-                                    False, f"no_rotator_angle: {why}", float("nan"),
-                                    float("nan"), 0)
-        elif isinstance(self.solver, KalmanOFC):
-            out = self.solver.step(z, valid, uncertainty_nm=unc, rotator_angle_deg=angle,
-                                   stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
-        else:
-            out = self.solver.step(z, valid, stamp_ns=int(vec.stamp_ns), dry_run=self.dry_run)
+        stamp = int(vec.stamp_ns)
+        angle, why = rotator_angle_for(self.ofc_params.__getitem__, self.rotator, stamp)
+        out = step_controller(self.solver, np.asarray(vec.zernikes_nm, dtype=np.float64),
+                              np.asarray(vec.corner_valid, dtype=bool),
+                              uncertainty_nm=getattr(vec, "uncertainty_nm", None),
+                              angle_deg=angle, angle_why=why, stamp_ns=stamp, now_ns=None,
+                              dry_run=self.dry_run)
         self.dofs.append(DofRow(
             self._visit(vec.stamp_ns), int(vec.stamp_ns), bool(out.valid), out.status,
             float(out.wavefront_rms_nm), float(out.predicted_residual_rms_nm),

@@ -131,18 +131,27 @@ def _vector(stamp: int, z: np.ndarray, unc=None, pairs=None) -> WavefrontVector:
     return m
 
 
-def test_node_integrates_a_restamped_flood_once(ros_context, spin):
-    """30 re-stamped copies of one vector 1 ms apart, then 30 distinct vectors 1 ms apart:
-    one correction is integrated; the rest get none and are counted."""
+def _ofc_and_tester(ros_context, spin):
+    """An ofc_node without a rotator (rotator_angle_source fixed) and a tester's publisher of
+    vectors and recorder of corrections, discovered."""
     from conftest import wait_for
 
     ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
-        Parameter("rotator_angle_source", value="fixed")]))  # no rotator on this bench
+        Parameter("rotator_angle_source", value="fixed")]))
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     out: list[DofCorrection] = []
     tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
     wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    return ofc, pub, out
+
+
+def test_node_integrates_a_restamped_flood_once(ros_context, spin):
+    """30 re-stamped copies of one vector 1 ms apart, then 30 distinct vectors 1 ms apart:
+    one correction is integrated; the rest get none and are counted."""
+    from conftest import wait_for
+
+    ofc, pub, out = _ofc_and_tester(ros_context, spin)
     rng = np.random.default_rng(5)
     z = _genuine(rng, 1e-3)
     for k in range(30):
@@ -166,13 +175,7 @@ def test_node_integrates_a_restamped_flood_once(ros_context, spin):
 def test_node_refuses_implausible_and_unmeasured_corners(ros_context, spin):
     from conftest import wait_for
 
-    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
-        Parameter("rotator_angle_source", value="fixed")]))  # no rotator on this bench
-    tester = spin(rclpy.create_node("tester", context=ros_context))
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    out: list[DofCorrection] = []
-    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
-    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    ofc, pub, out = _ofc_and_tester(ros_context, spin)
     rng = np.random.default_rng(6)
     cases = []
     cases.append((np.full(76, 19999.0), None, None, "implausible_wavefront"))

@@ -57,7 +57,15 @@ from cwfs_ros.core import control as C
 from cwfs_ros.core.errors import ConfigError
 from cwfs_ros.ofc import plausibility as P
 from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC
-from cwfs_ros.ofc.params import CONTROLLERS, controller_from_params, restore_record, state_record
+from cwfs_ros.ofc.params import (
+    CONTROLLERS,
+    controller_from_params,
+    refusal,
+    restore_record,
+    rotator_angle_for,
+    state_record,
+    step_controller,
+)
 from cwfs_ros.ofc.persistence import load_state, save_state
 from cwfs_ros.ofc.rotator import ROTATOR_JOINT, RotatorHistory
 
@@ -92,8 +100,6 @@ _SOLVER_PARAMS = ("controller", "band", "matrix_source", "method", "n_modes", "a
                   "kp", "ki", "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
                   "max_condition", "max_abs_zernike_nm", "max_future_s", "angle_bin_deg",
                   *KALMAN_PARAM_RANGES)
-# A pid controller has no rotator model: it refuses a camera rotated by more than this.
-_PID_MAX_ANGLE_DEG = 0.01
 
 
 # The matrix of a source and the controller of a parameter set live in the core, where the
@@ -386,13 +392,13 @@ class OfcNode(Node):
                 dry = self.dry_run
                 if problem is None:
                     problem = self.state_problem
-                angle, why = self._rotator_angle(stamp)
-                if problem is None and angle is None:
-                    problem = f"no_rotator_angle: {why}"
+                angle, why = rotator_angle_for(self._param, self.rotator, stamp)
                 before = state_record(self.solver) if self.state_file else None
-                out = self._refusal(problem) if problem is not None else self._step(
-                    z, valid, np.asarray(msg.uncertainty_nm, dtype=np.float64), angle, stamp,
-                    dry)
+                out = self._refusal(problem) if problem is not None else step_controller(
+                    self.solver, z, valid,
+                    uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
+                    angle_deg=angle, angle_why=why, stamp_ns=stamp,
+                    now_ns=self.get_clock().now().nanoseconds, dry_run=dry)
                 if out.valid and not dry:
                     out = self._persist(out, before)
                 self._log_observability_change(out)
@@ -402,19 +408,6 @@ class OfcNode(Node):
             dry = self.dry_run
         self._publish(stamp, out, dry)
         self._note_integrated(msg, stamp, out, dry)
-
-    def _step(self, z: np.ndarray, valid: np.ndarray, unc: np.ndarray, angle: float,
-              stamp: int, dry: bool) -> C.OFCResult:
-        s = self.solver
-        now = self.get_clock().now().nanoseconds
-        if isinstance(s, KalmanOFC):
-            return s.step(z, valid, uncertainty_nm=unc, rotator_angle_deg=angle, stamp_ns=stamp,
-                          now_ns=now, dry_run=dry)
-        if abs(angle) > _PID_MAX_ANGLE_DEG:
-            return self._refusal(f"rotator_unsupported: the pid controller has no rotator "
-                                 f"model and the camera is at {angle:.3g} deg; use "
-                                 "controller kalman")
-        return s.step(z, valid, stamp_ns=stamp, now_ns=now, dry_run=dry)
 
     # ------------------------------------------------------------------ rotator and state
     def _on_joints(self, msg: JointState) -> None:
@@ -436,11 +429,6 @@ class OfcNode(Node):
             self.refused.add("rotator_sample_ignored", why)
             self.get_logger().warning(f"rotator sample ignored: {why}",
                                       throttle_duration_sec=10.0)
-
-    def _rotator_angle(self, stamp: int) -> tuple[float | None, str]:
-        if self._param("rotator_angle_source") == "fixed":
-            return float(self._param("rotator_angle_deg")), "fixed"
-        return self.rotator.angle_deg(stamp)
 
     def _warm(self, s: C.OFCSolver) -> None:
         """Build what the first visit needs now, so that it is as fast as any other, and say
@@ -511,9 +499,7 @@ class OfcNode(Node):
             return self._refusal(f"{self.save_problem}; correction withheld (state unchanged)")
 
     def _refusal(self, status: str) -> C.OFCResult:
-        s = self.solver
-        return C.OFCResult(np.zeros(C.N_DOF), s.dof_total.copy(), False, status, float("nan"),
-                           float("nan"), 0)
+        return refusal(self.solver, status)
 
     def _publish(self, stamp: int, out: C.OFCResult, dry: bool) -> None:
         self._account(str(stamp), out)

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 import galsim
 import numpy as np
@@ -148,9 +147,8 @@ class OpticalModel:
         self.band = band
         self.angle_bin_deg = float(angle_bin_deg)
         self.corner_fields_cam_deg = C.corner_mid_field_points_deg()
-        # The field objective uses the same data as the corners where it can; a bundled
-        # matrix without its double Zernike falls back to ts_ofc's for the field and for
-        # rotated corners (stated in docs/closed-loop.md).
+        # The data of the field and of rotated corners: the source's own double Zernike, or,
+        # for a bundled matrix without one, ts_ofc's (stated in docs/closed-loop.md).
         self.field_source = source if (source == "ts_ofc" or _bundled_dz_available()) \
             else "ts_ofc"
         gq = gq_field_points_deg()
@@ -172,8 +170,7 @@ class OpticalModel:
     def _corner_matrix(self, fields_tel: np.ndarray, angle_deg: float) -> np.ndarray:
         if angle_deg == 0 and self.source == "bundled":
             return C.sensitivity_for_source("bundled").matrix_nm
-        src = self.source if (self.source == "ts_ofc" or _bundled_dz_available()) else "ts_ofc"
-        return double_zernike_at(_dz_nm(src), fields_tel).reshape(-1, C.N_DOF)
+        return double_zernike_at(_dz_nm(self.field_source), fields_tel).reshape(-1, C.N_DOF)
 
     def _build(self, angle_deg: float) -> ModelAtAngle:
         theta = np.deg2rad(angle_deg)
@@ -188,7 +185,3 @@ class OpticalModel:
             a.setflags(write=False)
         return ModelAtAngle(float(angle_deg), *arrays, self._F_tel, self._weights)
 
-
-def bundled_dz_path() -> Path:
-    """Where the bundled double-Zernike sensitivity lives."""
-    return C.ofc_config_dir() / BUNDLED_DZ_FILENAME

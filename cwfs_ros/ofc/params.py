@@ -13,11 +13,14 @@ from cwfs_ros.core.errors import ConfigError
 from .kalman import KALMAN_PARAM_RANGES, KalmanOFC, KalmanSettings
 from .model import OpticalModel
 
-__all__ = ["CONTROLLERS", "controller_from_params", "restore_record", "state_record"]
+__all__ = ["CONTROLLERS", "PID_MAX_ANGLE_DEG", "controller_from_params", "refusal",
+           "restore_record", "rotator_angle_for", "state_record", "step_controller"]
 
 #: ``kalman``: this package's filter and field-optimal correction (default);
 #: ``pid``: ts_ofc's scheme (range-fwhm weights, truncated SVD, PI gains), for comparison.
 CONTROLLERS: tuple[str, ...] = ("kalman", "pid")
+#: A pid controller has no rotator model: it refuses a camera rotated by more than this [deg].
+PID_MAX_ANGLE_DEG = 0.01
 
 
 def controller_from_params(get: Callable[[str], Any]) -> C.OFCSolver:
@@ -131,3 +134,36 @@ def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
     ctl.reset()
     ctl.dof_total, ctl.n_steps, ctl.last_stamp_ns = dof_total.copy(), n_steps, last
     return f"accumulated DoF and last stamp of a {kind} state ({n_steps} visit(s))"
+
+
+def refusal(ctl: C.OFCSolver, status: str) -> C.OFCResult:
+    """A refused visit: no correction, the controller's state as it is."""
+    return C.OFCResult(np.zeros(C.N_DOF), ctl.dof_total.copy(), False, status, float("nan"),
+                       float("nan"), 0)
+
+
+def rotator_angle_for(get: Callable[[str], Any], history: Any,
+                      stamp_ns: int) -> tuple[float | None, str]:
+    """The rotator angle of a visit [deg] by ``rotator_angle_source`` (``fixed``: the
+    ``rotator_angle_deg`` parameter; ``topic``: the :class:`~.rotator.RotatorHistory`), or
+    None with the reason."""
+    if get("rotator_angle_source") == "fixed":
+        return float(get("rotator_angle_deg")), "fixed"
+    return history.angle_deg(stamp_ns)
+
+
+def step_controller(ctl: C.OFCSolver, z: np.ndarray, valid: np.ndarray, *,
+                    uncertainty_nm: np.ndarray | None, angle_deg: float | None,
+                    angle_why: str, stamp_ns: int, now_ns: int | None,
+                    dry_run: bool) -> C.OFCResult:
+    """One visit through either controller, as ofc_node and the offline replay both run it:
+    refused without a rotator angle; the pid controller refuses a rotated camera."""
+    if angle_deg is None:
+        return refusal(ctl, f"no_rotator_angle: {angle_why}")
+    if isinstance(ctl, KalmanOFC):
+        return ctl.step(z, valid, uncertainty_nm=uncertainty_nm, rotator_angle_deg=angle_deg,
+                        stamp_ns=stamp_ns, now_ns=now_ns, dry_run=dry_run)
+    if abs(angle_deg) > PID_MAX_ANGLE_DEG:
+        return refusal(ctl, f"rotator_unsupported: the pid controller has no rotator model "
+                            f"and the camera is at {angle_deg:.3g} deg; use controller kalman")
+    return ctl.step(z, valid, stamp_ns=stamp_ns, now_ns=now_ns, dry_run=dry_run)
