@@ -28,9 +28,10 @@ venv:
 
 lint: venv
 	$(RUFF) check .
+	$(VENV)/bin/lint-imports --no-logo --no-cache
+	$(PY) tools/check_private_imports.py
 
-test: venv
-	$(RUFF) check .
+test: lint
 	@# The tests choose their own middleware and configuration (FastDDS is the only RMW
 	@# installed; CWFS_ROS_CONFIG would point the nodes at another config/): `make demo`
 	@# honours both, the tests do not.

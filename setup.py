@@ -46,9 +46,9 @@ setup(
     entry_points={
         "console_scripts": [
             "cwfs-ros = cwfs_ros.cli:main",
-            "wavefront_node = cwfs_ros.nodes.wavefront_node:main",
-            "ofc_node = cwfs_ros.nodes.ofc_node:main",
-            "camera_sim_node = cwfs_ros.nodes.camera_sim_node:main",
+            "wavefront_node = cwfs_ros.ros.wavefront_node:main",
+            "ofc_node = cwfs_ros.ros.ofc_node:main",
+            "camera_sim_node = cwfs_ros.ros.camera_sim_node:main",
         ],
     },
 )

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Cost of the blur reference (cwfs_ros.core.blur) per new pair geometry, with the vignetting
+"""Cost of the blur reference (cwfs_ros.wfs.blur) per new pair geometry, with the vignetting
 edges traced ray by ray and from the fitted aperture positions (mapping.pupil_transmission).
 
 Random pairs of corner-sensor fields (both halves, all four corners, within 0.05 deg of each
@@ -22,11 +22,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from cwfs_ros.core import load_instrument  # noqa: E402
-from cwfs_ros.core import mapping as mp  # noqa: E402
-from cwfs_ros.core.blur import blur_reference, image_blur_sigma_px  # noqa: E402
-from cwfs_ros.core.estimator import load_algorithm, pair_geometry  # noqa: E402
 from cwfs_ros.sim.render import corner_fields  # noqa: E402
+from cwfs_ros.wfs import load_instrument  # noqa: E402
+from cwfs_ros.wfs import mapping as mp  # noqa: E402
+from cwfs_ros.wfs.blur import blur_reference, image_blur_sigma_px  # noqa: E402
+from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry  # noqa: E402
 
 WL = 622.0
 
@@ -76,4 +76,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from cwfs_ros.demo import LoopConfig, LoopRun, run_closed_loop
-from cwfs_ros.launch import sim_params_file
+from cwfs_ros.cli.demo import LoopConfig, LoopRun, run_closed_loop
+from cwfs_ros.ros.launch import sim_params_file
 from cwfs_ros.sim.perturbation import stroke_perturbation
 
 QUIET = ("--log-level", "warn")
@@ -111,4 +111,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

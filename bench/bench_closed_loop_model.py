@@ -22,7 +22,8 @@ import time
 
 import numpy as np
 
-from cwfs_ros.core import control as C
+from cwfs_ros import layout
+from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.model import OpticalModel
 from cwfs_ros.sim.perturbation import stroke_perturbation
@@ -128,12 +129,12 @@ def creep_cause() -> None:
     for name, ctl in (("pid (kp 0.6, ki 0)", C.OFCSolver(C.sensitivity_for_source("bundled"),
                                                          kp=0.6, ki=0.0)),
                       ("pid (ts_ofc gains)", pid()), ("kalman", kalman())):
-        x = np.zeros(C.N_DOF)
+        x = np.zeros(layout.N_DOF)
         x[[1, 2, 6, 7]] = [600.0, -450.0, -900.0, 500.0]
         bend, wf = [], []
         for k in range(50):
             y = intr + A @ x
-            res = (ctl.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=k + 1)
+            res = (ctl.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=k + 1)
                    if isinstance(ctl, KalmanOFC) else ctl.step(y, stamp_ns=k + 1))
             x = x + res.dof
             bend.append(np.sqrt(np.mean((x[10:] / rng_[10:]) ** 2)))
@@ -149,10 +150,10 @@ def speed() -> None:
     rng = np.random.default_rng(0)
     times = []
     for k in range(200):
-        y = at.intrinsic_nm + rng.normal(0, 15.0, C.N_MEAS)
+        y = at.intrinsic_nm + rng.normal(0, 15.0, layout.N_MEAS)
         angle = float(rng.uniform(-90, 90))  # a new bin most visits: the worst case
         t = time.perf_counter()
-        ctl.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=k + 1,
+        ctl.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=k + 1,
                  rotator_angle_deg=angle)
         times.append(time.perf_counter() - t)
     t = np.array(times) * 1e3
@@ -180,4 +181,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

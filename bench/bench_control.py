@@ -1,4 +1,4 @@
-"""Benchmark and health report of the OFC core (cwfs_ros.core.control).
+"""Benchmark and health report of the OFC core (cwfs_ros.ofc.control).
 
 Prints: load and solve times, the singular-value spectrum of the normalised sensitivity
 matrix, how much of random rigid-body and bending perturbations a gain-1 solve recovers, the
@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cwfs_ros.core import control as C  # noqa: E402
+from cwfs_ros import layout  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
 
 
 def timed(fn, repeat: int) -> tuple[float, object]:
@@ -45,7 +46,7 @@ def recovered_fraction(s: C.OFCSolver, sm: C.SensitivityMatrix, sel: np.ndarray,
     ratio, proj, ratio_r, proj_r, explained = [], [], [], [], []
     rng_units = C.load_dof_spec().range
     for _ in range(draws):
-        x = np.zeros(C.N_DOF)
+        x = np.zeros(layout.N_DOF)
         x[sel] = rng.normal(0.0, sigma[sel])
         r = sm.matrix_nm @ x
         est = s.estimate(r)
@@ -155,4 +156,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

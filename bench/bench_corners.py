@@ -22,10 +22,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
-from cwfs_ros.core import estimate_wavefront  # noqa: E402
-from cwfs_ros.paths import config_dir  # noqa: E402
+from cwfs_ros.config import config_dir  # noqa: E402
 from cwfs_ros.sim.render import render_donut, true_zernikes_nm  # noqa: E402
 from cwfs_ros.sim.telescope import perturbed_telescope  # noqa: E402
+from cwfs_ros.wfs import estimate_wavefront  # noqa: E402
 
 SCALE = np.array([8, 150, 150, 0.005, 0.005, 8, 150, 150, 0.005, 0.005])
 
@@ -99,4 +99,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

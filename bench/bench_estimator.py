@@ -28,8 +28,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # "one core", as the targets
 
 import numpy as np  # noqa: E402
 
-from cwfs_ros.core import estimate_wavefront, load_instrument  # noqa: E402
-from cwfs_ros.core.io import read_image  # noqa: E402
+from cwfs_ros.wfs import estimate_wavefront, load_instrument  # noqa: E402
+from cwfs_ros.wfs.io import read_image  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -94,9 +94,9 @@ def bench_fam(data: Path, solvers: list[str], **algorithm) -> None:
 def bench_gram(data: Path, solvers: list[str]) -> None:
     import yaml
 
-    from cwfs_ros.core.estimator import load_algorithm, pair_geometry
-    from cwfs_ros.core.zernike import gram_summary
-    from cwfs_ros.paths import config_dir
+    from cwfs_ros.config import config_dir
+    from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+    from cwfs_ros.wfs.zernike import gram_summary
 
     print("\n== Gram matrix of Z4-Z22 over the pupil (area average; identity on a full annulus)")
     inst = load_instrument("lsst")
@@ -198,7 +198,7 @@ def bench_speed(solvers: list[str]) -> None:
         print(f"  {s}: median {np.median(ts) * 1e3:.1f} ms  p90 {np.percentile(ts, 90) * 1e3:.1f}"
               f" ms  (targets: exp<=20, fft<=60)")
     code = ("import time,numpy as np;t=time.perf_counter();"
-            "from cwfs_ros.core import estimate_wavefront;"
+            "from cwfs_ros.wfs import estimate_wavefront;"
             "d=np.load('/tmp/_cwfs_pair.npy');"
             "t1=time.perf_counter();r=estimate_wavefront(d[0],d[1],field_intra_deg=(0.3,-0.2),"
             "field_extra_deg=(0.3,-0.2));t2=time.perf_counter();"
@@ -220,9 +220,9 @@ def bench_new_fields(solvers: list[str], n: int = 10) -> None:
     """
     from threadpoolctl import threadpool_limits
 
-    from cwfs_ros.core.estimator import load_algorithm, pair_geometry
-    from cwfs_ros.core.field_position import load_half_chips
-    from cwfs_ros.core.instrument import load_instrument
+    from cwfs_ros.frames.field_position import load_half_chips
+    from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+    from cwfs_ros.wfs.instrument import load_instrument
 
     h = load_half_chips()["R00"]
     inst = load_instrument("lsst")
@@ -268,4 +268,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Executor busy loop: rclpy's MultiThreadedExecutor against cwfs_ros.nodes.executor's.
+"""Executor busy loop: rclpy's MultiThreadedExecutor against cwfs_ros.ros.executor's.
 
 One process holds ofc_node and a client node on one executor (3 threads), as the composed
 bringup does. The client publishes ``--messages`` WavefrontVector messages at ``--rate`` Hz
@@ -39,15 +39,15 @@ def one_run(kind: str, n_messages: int, rate_hz: float, domain: int) -> dict:
     import rclpy
     from cwfs_msgs.msg import DofCorrection, WavefrontVector
 
-    from cwfs_ros.core import control as C
-    from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns
-    from cwfs_ros.nodes.executor import count_pool_submissions
-    from cwfs_ros.nodes.ofc_node import OfcNode
+    from cwfs_ros.ofc import control as C
+    from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns
+    from cwfs_ros.ros.executor import count_pool_submissions
+    from cwfs_ros.ros.ofc_node import OfcNode
 
     if kind == "rclpy":
         from rclpy.executors import MultiThreadedExecutor
     else:
-        from cwfs_ros.nodes.executor import MultiThreadedExecutor
+        from cwfs_ros.ros.executor import MultiThreadedExecutor
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -150,4 +150,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     sys.exit(main())

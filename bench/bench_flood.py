@@ -58,7 +58,7 @@ def start_node(name: str, *params: str) -> subprocess.Popen:
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     args = [a for p in params for a in ("-p", p)]
-    return subprocess.Popen([sys.executable, "-m", "cwfs_ros.launch", "node", name,
+    return subprocess.Popen([sys.executable, "-m", "cwfs_ros.ros.launch", "node", name,
                              "--ros-args", *args], env=env, cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
@@ -73,7 +73,7 @@ class Probe:
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
 
-        from cwfs_ros.nodes.common import OUTPUT_QOS
+        from cwfs_ros.ros.common import OUTPUT_QOS
 
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=DOMAIN)
@@ -116,8 +116,8 @@ def wait(cond, timeout: float) -> bool:
 def bench_frames(n: int, max_mb: float) -> None:
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.common import IMAGE_QOS
-    from cwfs_ros.nodes.convert import image_msg
+    from cwfs_ros.ros.common import IMAGE_QOS
+    from cwfs_ros.ros.convert import image_msg
 
     print(f"\n== frames: {n} unpaired 2000x1000 32FC1 frames on /aos/wfs/R00/intra/image, "
           f"max_pending_mb {max_mb:g}")
@@ -170,8 +170,8 @@ def bench_frames(n: int, max_mb: float) -> None:
 def bench_vectors(m: int) -> None:
     from cwfs_msgs.msg import WavefrontVector
 
-    from cwfs_ros.core import control as C
-    from cwfs_ros.nodes.common import OUTPUT_QOS
+    from cwfs_ros.ofc import control as C
+    from cwfs_ros.ros.common import OUTPUT_QOS
 
     print(f"\n== vectors: {m} distinct WavefrontVectors 1 ms apart (stamps), as fast as "
           "possible")
@@ -219,4 +219,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -6,7 +6,7 @@ total wavefront at the corners), and for each renders the two half-chip frames o
 (default R00, 1000 x 2000 px each, focal-plane orientation) with 3-6 isolated donuts of
 log-uniform brightness at their own field angles, plus one blended pair and one too-faint
 star per frame, sky 50 e-/px and Poisson noise (cwfs_ros.sim.frames). Each corner is then
-processed from its frames (cwfs_ros.core.selection.estimate_corner_frames) and reports:
+processed from its frames (cwfs_ros.frames.selection.estimate_corner_frames) and reports:
 
   selection   blended/faint stars rejected (and with which reason), isolated stars accepted,
               detected positions against the injected chief rays
@@ -17,7 +17,7 @@ processed from its frames (cwfs_ros.core.selection.estimate_corner_frames) and r
   calibration fraction of |error| < 1 sigma over terms x trials, single pair and combined
 
 The first --calib-trials trials fit the per-pair noise model (sigma_j^2 = (c_j q)^2 + f_j^2,
-cwfs_ros.core.combination.fit_noise_model) against the truth; the remaining trials are
+cwfs_ros.frames.combination.fit_noise_model) against the truth; the remaining trials are
 evaluated with it (independent seeds). --write-config stores the fit in config/selection.yaml
 (combination.noise_model.<solver>).
 
@@ -40,22 +40,22 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from cwfs_ros.core.combination import (  # noqa: E402
+from cwfs_ros.config import config_dir  # noqa: E402
+from cwfs_ros.frames.combination import (  # noqa: E402
     CombinationConfig,
     combine_pairs,
     fit_noise_model,
     pair_sigma_nm,
 )
-from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
-from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
-from cwfs_ros.core.selection import (  # noqa: E402
+from cwfs_ros.frames.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.frames.selection import (  # noqa: E402
     estimate_corner_frames,
     load_selection_config,
 )
-from cwfs_ros.paths import config_dir  # noqa: E402
 from cwfs_ros.sim.frames import random_stars, render_frame  # noqa: E402
 from cwfs_ros.sim.render import true_zernikes_nm  # noqa: E402
 from cwfs_ros.sim.telescope import load_lsst, perturbed_telescope  # noqa: E402
+from cwfs_ros.wfs.settings import EstimatorSettings  # noqa: E402
 
 SCALE = np.array([8, 150, 150, 0.005, 0.005, 8, 150, 150, 0.005, 0.005])
 WL = 622.0
@@ -150,9 +150,9 @@ def machine_reference_ms() -> float:
     """Median of 20 warm lsq estimates of one on-axis 160-px pair (one BLAS thread): the
     machine's speed, to compare frame timings across machines (README Speed measured this
     kind of estimate at 6.1 ms on the machine of the earlier figures)."""
-    from cwfs_ros.core import estimate_wavefront
     from cwfs_ros.sim.render import render_donut
     from cwfs_ros.sim.telescope import perturbed_telescope
+    from cwfs_ros.wfs import estimate_wavefront
 
     tel = perturbed_telescope(np.zeros(50), band="r")
     rng = np.random.default_rng(0)
@@ -426,4 +426,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

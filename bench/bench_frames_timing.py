@@ -32,10 +32,10 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_frames as bf  # noqa: E402
 
-from cwfs_ros.core.corner_pool import EstimatorSettings  # noqa: E402
-from cwfs_ros.core.estimator import pair_geometry  # noqa: E402
-from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
-from cwfs_ros.core.selection import estimate_corner_frames, load_selection_config  # noqa: E402
+from cwfs_ros.frames.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.frames.selection import estimate_corner_frames, load_selection_config  # noqa: E402
+from cwfs_ros.wfs.estimator import pair_geometry  # noqa: E402
+from cwfs_ros.wfs.settings import EstimatorSettings  # noqa: E402
 
 
 def frames(cache: Path, trials: range, seed: int) -> list[dict[str, np.ndarray]]:
@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("--tag", default="")
     ap.add_argument("--estimator-seeing", type=float, default=0.0,
                     help="seeing (arcsec FWHM) the estimator is told: > 0 adds the blur "
-                         "reference of each new pair geometry (cwfs_ros.core.blur)")
+                         "reference of each new pair geometry (cwfs_ros.wfs.blur)")
     a = ap.parse_args()
     data = frames(a.cache, range(a.trials), a.seed)
     warm_up = frames(a.cache, range(a.trials, a.trials + a.warm_trials), a.seed)
@@ -90,4 +90,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -31,14 +31,14 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from scipy.ndimage import gaussian_filter  # noqa: E402
 
-from cwfs_ros.core import estimate_wavefront, load_instrument  # noqa: E402
-from cwfs_ros.core.checks import swap_score  # noqa: E402
-from cwfs_ros.core.donuts import prepare_donut  # noqa: E402
-from cwfs_ros.core.errors import ImageError  # noqa: E402
-from cwfs_ros.core.io import read_image  # noqa: E402
-from cwfs_ros.paths import config_dir  # noqa: E402
+from cwfs_ros.config import config_dir  # noqa: E402
+from cwfs_ros.errors import ImageError  # noqa: E402
 from cwfs_ros.sim.render import render_donut, true_zernikes_nm  # noqa: E402
 from cwfs_ros.sim.telescope import perturbed_telescope  # noqa: E402
+from cwfs_ros.wfs import estimate_wavefront, load_instrument  # noqa: E402
+from cwfs_ros.wfs.checks import swap_score  # noqa: E402
+from cwfs_ros.wfs.donuts import prepare_donut  # noqa: E402
+from cwfs_ros.wfs.io import read_image  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SCALE = np.array([8, 150, 150, 0.005, 0.005, 8, 150, 150, 0.005, 0.005])
@@ -178,7 +178,7 @@ def bench_saturation(pairs: list[dict], seeds: int, rng: np.random.Generator) ->
 
 def scores(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple) -> np.ndarray:
     """(vignetting, footprint) preferences of the swap check for a pair (as the estimator)."""
-    from cwfs_ros.core.estimator import load_algorithm, pair_geometry
+    from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
 
     g = pair_geometry(load_instrument("lsst"), "r", 622.0, fi, fe, 1.5, load_algorithm("lsq"))
     d = [prepare_donut(im, name=s, outer_radius_px=g.outer_radius_px, margin_px=3.0)
@@ -255,4 +255,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

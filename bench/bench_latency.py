@@ -2,7 +2,7 @@
 """End-to-end latency: last of a visit's 8 images published -> DofCorrection received.
 
 The nodes run in a separate process, started as a user would (``cwfs-ros bringup``, or
-``python -m cwfs_ros.launch bringup`` while the project CLI does not register it yet), on a
+``python -m cwfs_ros.ros.launch bringup`` while the project CLI does not register it yet), on a
 private DDS domain. This process renders one visit of ray-traced donuts (cwfs_ros.sim, 160x160
 stamps, a known perturbation), waits until wavefront_node reports its workers warm on
 /diagnostics, then publishes visits and times each DofCorrection from the moment the last
@@ -73,7 +73,7 @@ def bringup_command() -> list[str]:
         probe = subprocess.run([exe, "bringup", "--help"], capture_output=True, timeout=60)
         if probe.returncode == 0:
             return [exe, "bringup"]
-    return [sys.executable, "-m", "cwfs_ros.launch", "bringup"]
+    return [sys.executable, "-m", "cwfs_ros.ros.launch", "bringup"]
 
 
 def pct(values: list[float], q: float) -> float:
@@ -108,8 +108,8 @@ def main() -> int:
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns
-    from cwfs_ros.nodes.convert import image_msg
+    from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns
+    from cwfs_ros.ros.convert import image_msg
 
     # One rendered visit is sent again and again under new stamps, faster than visits come
     # and with no rotator: the controller's repeat and cadence guards and its rotator input
@@ -248,4 +248,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     raise SystemExit(main())

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Load: visits back to back at 10x the LSST cadence or faster, for minutes (reliability issue).
 
-The nodes run in a separate process (``python -m cwfs_ros.launch bringup``: wavefront_node +
+The nodes run in a separate process (``python -m cwfs_ros.ros.launch bringup``: wavefront_node +
 ofc_node, default parameters), on a private DDS domain. This process publishes one
 ray-traced visit (8 stamps, re-stamped each time) every ``--period`` seconds for
 ``--duration`` seconds and reports:
@@ -83,15 +83,15 @@ def main() -> int:
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns
-    from cwfs_ros.nodes.convert import image_msg
+    from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns
+    from cwfs_ros.ros.convert import image_msg
 
     env = dict(os.environ)
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     # One visit's images are sent again and again under new stamps, faster than visits come
     # and with no rotator: the controller's repeat and cadence guards and its rotator input
     # are set aside for this load benchmark.
-    proc = subprocess.Popen([sys.executable, "-m", "cwfs_ros.launch", "bringup", "--ros-args",
+    proc = subprocess.Popen([sys.executable, "-m", "cwfs_ros.ros.launch", "bringup", "--ros-args",
                              "--log-level", "warn", "-p", "rotator_angle_source:=fixed",
                              "-p", "min_visit_period_s:=0.0", "-p", "refuse_repeats:=false"],
                             env=env, cwd=REPO,
@@ -205,4 +205,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     raise SystemExit(main())

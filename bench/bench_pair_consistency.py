@@ -3,7 +3,7 @@
 
 Draws corners of 4 star pairs from the shipped noise model of ``config/selection.yaml``
 (``--solver``), each pair's departure from design a normal draw of its own sigma
-(``cwfs_ros.core.combination.pair_sigma_nm``) at a noise scale q log-uniform in
+(``cwfs_ros.frames.combination.pair_sigma_nm``) at a noise scale q log-uniform in
 [``--q-min``, ``--q-max``] (the frames of bench_frames.py: median 0.0037), and reports:
 
   clean         corners refused (``CombinedEstimate.consistent`` false): false alarms
@@ -21,8 +21,8 @@ import argparse
 
 import numpy as np
 
-from cwfs_ros.core.combination import combine_pairs, pair_sigma_nm
-from cwfs_ros.core.selection import load_selection_config
+from cwfs_ros.frames.combination import combine_pairs, pair_sigma_nm
+from cwfs_ros.frames.selection import load_selection_config
 
 
 def main() -> None:
@@ -58,4 +58,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

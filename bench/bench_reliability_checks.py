@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_input_checks as BIC  # noqa: E402
 
-from cwfs_ros.core.images import ImageDecodeError, decode_checked  # noqa: E402
+from cwfs_ros.runtime.images import ImageDecodeError, decode_checked  # noqa: E402
 
 
 def _decode(a: np.ndarray, dtype: str, big: bool, declared_big: bool) -> str:
@@ -125,9 +125,9 @@ def bench_plateau(pairs: list[dict], seeds: int, rng: np.random.Generator) -> No
 def bench_plausibility(states: int, rng: np.random.Generator) -> None:
     import yaml
 
-    from cwfs_ros.core import control as C
+    from cwfs_ros.config import config_dir
+    from cwfs_ros.ofc import control as C
     from cwfs_ros.ofc import plausibility as P
-    from cwfs_ros.paths import config_dir
     from cwfs_ros.sim.render import true_zernikes_nm
     from cwfs_ros.sim.telescope import perturbed_telescope
 
@@ -188,4 +188,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

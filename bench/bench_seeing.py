@@ -42,8 +42,6 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_frames as bf  # noqa: E402
 
-from cwfs_ros.core import estimate_wavefront  # noqa: E402
-from cwfs_ros.core.blur import FWHM_PER_SIGMA  # noqa: E402
 from cwfs_ros.sim.render import (  # noqa: E402
     corner_fields,
     plate_scale_um_per_arcsec,
@@ -51,6 +49,8 @@ from cwfs_ros.sim.render import (  # noqa: E402
     true_zernikes_nm,
 )
 from cwfs_ros.sim.telescope import perturbed_telescope  # noqa: E402
+from cwfs_ros.wfs import estimate_wavefront  # noqa: E402
+from cwfs_ros.wfs.blur import FWHM_PER_SIGMA  # noqa: E402
 
 WL = bf.WL
 PIXEL_UM = 10.0
@@ -130,4 +130,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -2,7 +2,7 @@
 """Field-tiled vignetting against the direct ray trace, at random corner star fields.
 
 The batoid mapping decides the vignetting of a map tile's swept band from interpolated ray
-positions on the apertures (cwfs_ros.core.mapping._ApertureEdges).  This checks, at
+positions on the apertures (cwfs_ros.wfs.mapping._ApertureEdges).  This checks, at
 ``--fields`` random star fields per corner and side (within 0.06 deg of the half-chip
 centre, on the estimator's own lsq pupil grid), that the tiled mask equals the mask of a
 direct trace of every pupil point, and prints how many points differ, how many rays the
@@ -22,10 +22,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import scipy.fft as sfft  # noqa: E402
 
-from cwfs_ros.core import load_instrument  # noqa: E402
-from cwfs_ros.core import mapping as mp  # noqa: E402
-from cwfs_ros.core.estimator import _pupil_grid, load_algorithm  # noqa: E402
-from cwfs_ros.core.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.frames.field_position import load_half_chips  # noqa: E402
+from cwfs_ros.wfs import load_instrument  # noqa: E402
+from cwfs_ros.wfs import mapping as mp  # noqa: E402
+from cwfs_ros.wfs.estimator import _pupil_grid, load_algorithm  # noqa: E402
 
 BAND = "r"
 
@@ -106,4 +106,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cwfs_ros.core import control  # noqa: E402
+from cwfs_ros.ofc import control  # noqa: E402
 
 # ts_ofc BaseOFCData.rb_stroke: M2 dz, dx, dy [µm], rx, ry [deg]; camera the same.
 RB_STROKE = np.array([5900.0, 6700.0, 6700.0, 0.12, 0.12, 8700.0, 7600.0, 7600.0, 0.24, 0.24])
@@ -108,7 +108,7 @@ def main() -> None:
 
 HEADER = """\
 # The 50 active-optics degrees of freedom, in ts_ofc order: the single source of truth for
-# names, units, clip ranges and per-visit step limits (read by cwfs_ros.core.control).
+# names, units, clip ranges and per-visit step limits (read by cwfs_ros.ofc.control).
 #
 #   index 0-4   M2 hexapod dz, dx, dy [um], rx, ry [deg]
 #   index 5-9   camera hexapod dz, dx, dy [um], rx, ry [deg]
@@ -134,4 +134,7 @@ dofs:"""
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     main()

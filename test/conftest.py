@@ -20,6 +20,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 # Same settings as `make test`, for a bare `pytest` run. Both are read at import /
 # participant-creation time, so they must be set before rclpy or messages load.
 os.environ.setdefault("ROS_PYTHON_CHECK_FIELDS", "1")
+# One BLAS thread, as the entry points set it (cwfs_ros.runtime.threads).
+from cwfs_ros.runtime.threads import limit_blas_threads  # noqa: E402
+
+limit_blas_threads()
 os.environ.setdefault(
     "FASTRTPS_DEFAULT_PROFILES_FILE", str(REPO_ROOT / "config" / "fastdds_profile.xml")
 )
@@ -74,10 +78,10 @@ def wait_for(cond, timeout: float, what: str) -> None:
 
 def spin_thread(executor) -> threading.Thread:
     """A daemon thread (not started) spinning ``executor`` until the test shuts its context
-    down (:func:`cwfs_ros.launch.spin_until_shutdown`: a bare
+    down (:func:`cwfs_ros.ros.launch.spin_until_shutdown`: a bare
     ``Thread(target=executor.spin)`` ends with an unhandled-thread-exception warning when the
     shutdown races the executor's wait set)."""
-    from cwfs_ros.launch import spin_until_shutdown
+    from cwfs_ros.ros.launch import spin_until_shutdown
 
     return threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
 
@@ -86,7 +90,7 @@ def spin_thread(executor) -> threading.Thread:
 def spin(ros_context):
     """The project's executor spinning in a thread on the test's context; yields
     ``add(node)``, and destroys the added nodes after the test."""
-    from cwfs_ros.nodes.executor import MultiThreadedExecutor
+    from cwfs_ros.ros.executor import MultiThreadedExecutor
 
     ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
     th = spin_thread(ex)

@@ -1,11 +1,11 @@
 """``cwfs-ros bag``: record over real DDS, read back, play back with timing; real rosbag2 bags.
 
 * Round trip: messages published over DDS (sensor_msgs/Image and cwfs_msgs types) are recorded
-  by :class:`cwfs_ros.bag.Recorder` into mcap and sqlite3 bags; the stored bytes must equal
+  by :class:`cwfs_ros.ros.bag.Recorder` into mcap and sqlite3 bags; the stored bytes must equal
   rclpy's own serialisation of what was sent, the decoded fields must equal the sent fields,
   and the stored type hashes must equal the ones the live publishers announce (rosidl's).
 * Play: a bag written here with rosbags' Writer alone (not the recorder) is republished by
-  :func:`cwfs_ros.bag.play`; a raw subscriber must get the same bytes with the original spacing.
+  :func:`cwfs_ros.ros.bag.play`; a raw subscriber must get the same bytes with the original spacing.
 * ``bag record`` / ``bag play`` as real processes (ROS_DOMAIN_ID, SIGINT).
 * Bags from the real ``ros2 bag record`` (test/data/rosbag2-real, v7/v8, mcap/sqlite3, with
   service events): info and decoding, checked against values read independently (rosbags'
@@ -32,8 +32,8 @@ import pytest
 import yaml
 from conftest import spin_thread, wait_for
 
-from cwfs_ros import bag as B
-from cwfs_ros.cli import main as cli_main
+from cwfs_ros.cli.main import main as cli_main
+from cwfs_ros.ros import bag as B
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "test" / "data" / "rosbag2-real"
@@ -79,7 +79,7 @@ def sample_messages():
     """A few messages of the graph's types with distinctive values."""
     from cwfs_msgs.msg import CornerWavefront, DofCorrection
 
-    from cwfs_ros.nodes.convert import image_msg
+    from cwfs_ros.ros.convert import image_msg
 
     rng = np.random.default_rng(3)
     images = [image_msg(rng.normal(100, 10, (40, 48)).astype(np.float32), 1_000_000_123 + k,
@@ -115,8 +115,8 @@ def test_record_round_trip(storage, ros_context, tmp_path):
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS
-    from cwfs_ros.nodes.executor import MultiThreadedExecutor
+    from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS
+    from cwfs_ros.ros.executor import MultiThreadedExecutor
 
     types = {"/aos/wfs/R40/intra/image": Image, "/aos/ofc/dof_correction": DofCorrection,
              "/aos/wfs/R40/wavefront": CornerWavefront}
@@ -199,7 +199,7 @@ def test_record_round_trip(storage, ros_context, tmp_path):
     np.testing.assert_array_equal(c.zernikes_nm, want.zernikes_nm)
     assert np.isnan(c.uncertainty_nm).all() and c.compute_ms == 12.5
 
-    # Read independently of cwfs_ros.bag: rosbags' AnyReader checks every stored definition
+    # Read independently of cwfs_ros.ros.bag: rosbags' AnyReader checks every stored definition
     # against the recorded hash, and the rosidl-generated type description names the fields.
     from rosbags.highlevel import AnyReader
 
@@ -218,7 +218,7 @@ def test_recorder_adapts_to_a_best_effort_publisher(ros_context, tmp_path):
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.convert import image_msg
+    from cwfs_ros.ros.convert import image_msg
 
     topic = "/aos/wfs/R00/intra/image"
     rec = B.Recorder(tmp_path / "be", [topic], context=ros_context, discovery_period_s=0.05)
@@ -303,7 +303,7 @@ def test_play_republishes_bytes_with_original_timing(rate, ros_context, tmp_path
     from cwfs_msgs.msg import DofCorrection
     from rclpy.executors import SingleThreadedExecutor
 
-    from cwfs_ros.nodes.common import OUTPUT_QOS
+    from cwfs_ros.ros.common import OUTPUT_QOS
 
     stamps_ms = [0.0, 60.0, 90.0, 150.0, 250.0, 260.0, 330.0, 400.0]
     datas = write_bag(tmp_path / "b", stamps_ms)
@@ -374,7 +374,7 @@ def test_cli_record_until_sigint_then_play(ros_domain, tmp_path):
     from rclpy.duration import Duration
     from rclpy.executors import SingleThreadedExecutor
 
-    from cwfs_ros.nodes.common import OUTPUT_QOS
+    from cwfs_ros.ros.common import OUTPUT_QOS
 
     out = tmp_path / "cli_bag"
     rec = run_cli("bag", "record", out, "/aos/ofc/dof_correction", "-s", "sqlite3",
@@ -442,7 +442,7 @@ def test_record_stops_at_max_messages_or_duration(ros_domain, tmp_path, capsys):
     import rclpy
     from cwfs_msgs.msg import DofCorrection
 
-    from cwfs_ros.nodes.common import OUTPUT_QOS
+    from cwfs_ros.ros.common import OUTPUT_QOS
 
     result = {}
     th = threading.Thread(target=lambda: result.update(s=B.record(

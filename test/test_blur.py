@@ -1,4 +1,4 @@
-"""The blur's edge signal (cwfs_ros.core.blur) and the seeing input of the estimator.
+"""The blur's edge signal (cwfs_ros.wfs.blur) and the seeing input of the estimator.
 
 The truth here comes from outside the code under test: donuts of the nominal (design)
 telescope ray-traced by batoid, blurred by a Gaussian of a known seeing, whose wavefront
@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from cwfs_ros.core import estimate_wavefront, load_instrument
-from cwfs_ros.core.blur import FWHM_PER_SIGMA, design_donut, seeing_sigma_px
-from cwfs_ros.core.corner_pool import EstimatorSettings, validate_settings
-from cwfs_ros.core.errors import ConfigError
-from cwfs_ros.core.estimator import load_algorithm, pair_geometry
+from cwfs_ros.errors import ConfigError
 from cwfs_ros.sim.render import corner_fields, plate_scale_um_per_arcsec, render_donut
 from cwfs_ros.sim.telescope import perturbed_telescope
+from cwfs_ros.wfs import estimate_wavefront, load_instrument
+from cwfs_ros.wfs.blur import FWHM_PER_SIGMA, design_donut, seeing_sigma_px
+from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
 
 WL = 622.0
 
@@ -91,8 +91,8 @@ def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, off
     those rays through its LSST model, point for point, there and at random pupil points."""
     import batoid
 
-    from cwfs_ros.core.blur import _boundary
-    from cwfs_ros.core.mapping import pupil_transmission
+    from cwfs_ros.wfs.blur import _boundary
+    from cwfs_ros.wfs.mapping import pupil_transmission
 
     inst = load_instrument("lsst")
     field = tuple(np.add(corner_fields()[corner][side], offset_deg))
@@ -129,7 +129,7 @@ def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, off
 
 
 def _tile_served(inst, side: str, field: tuple[float, float], tile_deg: float) -> bool:
-    from cwfs_ros.core import mapping
+    from cwfs_ros.wfs import mapping
 
     tile = mapping._tile_of(field, tile_deg)
     return any(key[1] == side and key[5] == tile and entry is not None

@@ -18,10 +18,10 @@ from sensor_msgs.msg import Image, JointState  # noqa: E402
 from test_camera_sim import make_system  # noqa: E402
 from test_rotation import _camera_frame_zernikes_nm  # noqa: E402
 
-from cwfs_ros.core.visits import CORNERS  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.layout import CORNERS  # noqa: E402
 from cwfs_ros.ofc.field import field_rms_nm, gq_field_points_deg, gq_weights  # noqa: E402
 from cwfs_ros.ofc.rotation import dof_rotation_matrix, telescope_field_deg  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.sim.field_truth import fwhm_arcsec  # noqa: E402
 from cwfs_ros.sim.perturbation import wavefront_error_nm  # noqa: E402
 

@@ -21,12 +21,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from cwfs_ros.core.control import load_dof_spec  # noqa: E402
-from cwfs_ros.core.visits import CORNERS  # noqa: E402
-from cwfs_ros.nodes.camera_sim_node import RIGID_SCALE, CameraSimNode  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import dof_correction_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.layout import CORNERS  # noqa: E402
+from cwfs_ros.ofc.control import load_dof_spec  # noqa: E402
+from cwfs_ros.ros.camera_sim_node import RIGID_SCALE, CameraSimNode  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import dof_correction_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
 
 NPIX = 160
 FAST = {"visit_period_s": 0.0, "n_photons": 2e5, "npix": NPIX, "render_seed": 7}

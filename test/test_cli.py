@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cwfs_ros.core.io import read_image
+from cwfs_ros.wfs.io import read_image
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIR_DIR = ROOT / "test" / "data" / "zemax" / "F1.23_1mm_v61"
@@ -152,7 +152,7 @@ def test_version_and_missing_command() -> None:
 def test_plot_result_without_iterations(tmp_path: Path) -> None:
     """A result that hit caustic before any iteration (no history, no compensated images)
     still plots, from the preprocessed stamps it carries."""
-    from cwfs_ros.plotting import plot_result
+    from cwfs_ros.cli.plotting import plot_result
 
     stamp = SimpleNamespace(image=read_image(INTRA))
     result = SimpleNamespace(

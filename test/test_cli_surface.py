@@ -16,7 +16,7 @@ import pytest
 import yaml
 from test_cli import EXTRA, GEOMETRY, INTRA, ROOT, run_cli
 
-from cwfs_ros.core.io import read_image
+from cwfs_ros.wfs.io import read_image
 
 FAM = ROOT / "test" / "data" / "zemax" / "FAM"
 FAM_ARGS = ["--band", "g", "--wavelength", "500"]  # as the README's FAM runs
@@ -45,13 +45,13 @@ def test_lsq_is_the_default_solver_and_exp_fft_stay_selectable():
         assert proc.returncode == 0 and json.loads(proc.stdout)["solver"] == solver
     import inspect
 
-    from cwfs_ros.core import estimate_wavefront
+    from cwfs_ros.wfs import estimate_wavefront
 
     assert inspect.signature(estimate_wavefront).parameters["solver"].default == "lsq"
 
 
 def test_result_repr_is_a_short_summary():
-    from cwfs_ros.core import estimate_wavefront
+    from cwfs_ros.wfs import estimate_wavefront
 
     r = estimate_wavefront(read_image(INTRA), read_image(EXTRA), field_intra_deg=(0, 0),
                            field_extra_deg=(0, 0), instrument="paraxial",
@@ -79,7 +79,7 @@ def test_field_outside_the_field_of_view_is_refused():
 
 
 def test_lsst_admits_every_corner_sensor_and_the_fam_set():
-    from cwfs_ros.core import load_instrument
+    from cwfs_ros.wfs import load_instrument
 
     inst = load_instrument("lsst")
     corners = yaml.safe_load((ROOT / "config" / "sensors" / "lsst_corners.yaml").read_text())

@@ -1,7 +1,7 @@
 """Closed loop in one process: camera_sim_node -> wavefront_node -> ofc_node -> camera_sim_node.
 
 The graph is the one ``cwfs-ros bringup --sim`` and ``cwfs-ros demo`` run
-(:func:`cwfs_ros.demo.run_closed_loop`: config/params.yaml, config/sim.yaml, on the test's
+(:func:`cwfs_ros.cli.demo.run_closed_loop`: config/params.yaml, config/sim.yaml, on the test's
 own DDS domain), over real DDS. The simulator starts from a random rigid-body perturbation
 scaled to 600 nm of wavefront error (design removed, mean over corners of
 sqrt(sum Z4..Z22^2)), computed from its own ray-traced truth. Visits are triggered one at a
@@ -22,7 +22,7 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("cwfs_ros.sim")
 
-from cwfs_ros.demo import LoopConfig, run_closed_loop  # noqa: E402
+from cwfs_ros.cli.demo import LoopConfig, run_closed_loop  # noqa: E402
 from cwfs_ros.sim.perturbation import random_perturbation, wavefront_error_nm  # noqa: E402
 
 VISITS = 4

@@ -1,4 +1,4 @@
-"""Tests of cwfs_ros.core.control (optical feedback control core).
+"""Tests of cwfs_ros.ofc.control (optical feedback control core).
 
 Expected values come from the ts_ofc data files read directly here, from independent numpy
 linear algebra, or from batoid ray tracing, never from the code under test.
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.ofc import control as C
 
 OFC = Path(__file__).resolve().parents[1] / "config" / "ofc"
 CORNERS_DEG = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * 1.1902777777777778
@@ -577,7 +577,7 @@ def test_solver_from_params_limits():
     """0 means no limit; the shipped parameters set both limits."""
     import yaml
 
-    from cwfs_ros.paths import config_dir
+    from cwfs_ros.config import config_dir
 
     p = yaml.safe_load((config_dir() / "params.yaml").read_text())["ofc_node"]["ros__parameters"]
     s = C.solver_from_params(lambda n: p[n])
@@ -609,7 +609,7 @@ def test_solver_from_params_refuses_what_the_node_refuses(name, value, match):
     could run (a negative max_step_scale silently meant no step limit)."""
     import yaml
 
-    from cwfs_ros.paths import config_dir
+    from cwfs_ros.config import config_dir
 
     p = yaml.safe_load((config_dir() / "params.yaml").read_text())["ofc_node"]["ros__parameters"]
     p = {**p, name: value}

@@ -7,17 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from cwfs_ros.core.corner_pool import (
-    CornerJob,
-    CornerPool,
-    EstimatorSettings,
-    run_corner_job,
-    synthetic_donut,
-    validate_settings,
-)
-from cwfs_ros.core.errors import ConfigError
-from cwfs_ros.core.images import Orientation
-from cwfs_ros.core.visits import load_corner_fields
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.runtime.corner_pool import CornerJob, CornerPool, run_corner_job, synthetic_donut
+from cwfs_ros.runtime.visits import load_corner_fields
+from cwfs_ros.wfs.orientation import Orientation
+from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
 
 FIELDS = load_corner_fields()
 

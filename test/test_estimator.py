@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cwfs_ros.core import estimate_wavefront
-from cwfs_ros.core.errors import (
+from cwfs_ros.errors import (
     ConfigError,
     DonutCutError,
     FlatImageError,
@@ -22,7 +21,8 @@ from cwfs_ros.core.errors import (
     ShapeMismatchError,
     StampTooSmallError,
 )
-from cwfs_ros.core.io import read_image
+from cwfs_ros.wfs import estimate_wavefront
+from cwfs_ros.wfs.io import read_image
 
 DATA = Path(__file__).parent / "data" / "zemax"
 
@@ -129,8 +129,8 @@ def test_result_contents() -> None:
 
 
 def test_fft_matrix_equals_literal_iteration() -> None:
-    from cwfs_ros.core.tie import IterativeFFT
-    from cwfs_ros.core.zernike import zernike_basis
+    from cwfs_ros.wfs.tie import IterativeFFT
+    from cwfs_ros.wfs.zernike import zernike_basis
 
     n, h = 40, 2.2 / 40
     ax = (np.arange(n) - (n - 1) / 2) * h
@@ -222,7 +222,7 @@ def test_unreadable_instrument_is_a_config_error(tmp_path) -> None:
     """What a runtime ``instrument`` parameter may name: a name the file system refuses
     (OSError) or a file that is not UTF-8 YAML is a ConfigError, as an unknown name is
     (wavefront_node refuses the value instead of its executor dying)."""
-    from cwfs_ros.core import load_instrument
+    from cwfs_ros.wfs import load_instrument
 
     with pytest.raises(ConfigError, match="unknown instrument"):
         load_instrument("x" * 300)
@@ -234,8 +234,8 @@ def test_unreadable_instrument_is_a_config_error(tmp_path) -> None:
 
 def test_caustic_flag_keeps_last_good_estimate() -> None:
     """Z22 of a few hundred nm folds the 1-mm paraxial images (the intra rays cross)."""
-    from cwfs_ros.core import load_instrument
     from cwfs_ros.sim.paraxial import render_paraxial_pair
+    from cwfs_ros.wfs import load_instrument
 
     inst = load_instrument("paraxial")
     rng = np.random.default_rng(0)

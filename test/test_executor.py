@@ -1,4 +1,4 @@
-"""cwfs_ros.nodes.executor.MultiThreadedExecutor: each ready callback goes to the pool once.
+"""cwfs_ros.ros.executor.MultiThreadedExecutor: each ready callback goes to the pool once.
 
 rclpy 7.1.6's MultiThreadedExecutor hands a callback that is queued but not started to its
 pool again and again (rclpy issue #1452): 140-389 submissions per callback run with
@@ -26,8 +26,8 @@ from rclpy.callback_groups import ReentrantCallbackGroup  # noqa: E402
 from rclpy.task import Future  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 
-from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
-from cwfs_ros.nodes.executor import (  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS  # noqa: E402
+from cwfs_ros.ros.executor import (  # noqa: E402
     RCLPY_VERSION,
     MultiThreadedExecutor,
     count_pool_submissions,
@@ -293,6 +293,6 @@ def test_written_for_this_rclpy():
     (a newer rclpy may carry the upstream fix, rclpy #1452, and make the class unneeded)."""
     installed = importlib.metadata.version("ros-jazzy-rclpy")
     assert installed == RCLPY_VERSION, (
-        f"rclpy {installed} is installed; cwfs_ros.nodes.executor was written against "
+        f"rclpy {installed} is installed; cwfs_ros.ros.executor was written against "
         f"{RCLPY_VERSION}: check its _spin_once_impl against this release, then update "
         "RCLPY_VERSION")

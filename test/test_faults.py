@@ -1,7 +1,7 @@
 """Faults: the wavefront node killed in the middle of a visit and restarted.
 
 wavefront_node runs in its own process group, started as a user would
-(``python -m cwfs_ros.launch node wavefront_node``), on the test's DDS domain; ofc_node and a
+(``python -m cwfs_ros.ros.launch node wavefront_node``), on the test's DDS domain; ofc_node and a
 tester run in this process. Half of visit A's images are published, the node is SIGKILLed
 (with its workers) while it holds them, and a new node is started. The rest of visit A and a
 complete visit B follow. Expected: the new node recovers and visit B gets a valid
@@ -29,10 +29,10 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.sim import load_corner_geometry, perturbed_telescope  # noqa: E402
 from cwfs_ros.sim.visit import DonutSpec, render_visit  # noqa: E402
 
@@ -58,7 +58,7 @@ def _start_node(domain: int) -> subprocess.Popen:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
-    cmd = [sys.executable, "-m", "cwfs_ros.launch", "node", "wavefront_node", "--ros-args",
+    cmd = [sys.executable, "-m", "cwfs_ros.ros.launch", "node", "wavefront_node", "--ros-args",
            "-p", "workers:=2", "-p", "visit_timeout_s:=1.5", "-p", "diagnostics_period_s:=0.2"]
     # Own process group: SIGKILL takes the node and its estimator workers down together, as
     # a crash of the container would.

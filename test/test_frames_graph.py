@@ -17,10 +17,10 @@ from cwfs_msgs.msg import CornerWavefront, SimTruth  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from cwfs_ros.nodes.camera_sim_node import CameraSimNode  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.ros.camera_sim_node import CameraSimNode  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 
 
 def test_frames_are_selected_paired_and_combined(ros_context):

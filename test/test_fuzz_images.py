@@ -23,12 +23,13 @@ from cwfs_msgs.msg import CornerWavefront  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.core.corner_pool import CornerJob, EstimatorSettings, run_corner_job  # noqa: E402
-from cwfs_ros.core.images import ENCODINGS  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg, image_record_from_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg, image_record_from_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.runtime.corner_pool import CornerJob, run_corner_job  # noqa: E402
+from cwfs_ros.runtime.images import ENCODINGS  # noqa: E402
+from cwfs_ros.wfs.settings import EstimatorSettings  # noqa: E402
 
 SEC = 1_000_000_000
 BPP = {"u1": 1, "i1": 1, "u2": 2, "i2": 2, "i4": 4, "f4": 4, "f8": 8}

@@ -1,4 +1,4 @@
-"""The cached field-independent ray-hit fit (cwfs_ros.core.mapping._FitOperator).
+"""The cached field-independent ray-hit fit (cwfs_ros.wfs.mapping._FitOperator).
 
 A new star field must cost one ray trace plus small matrix products, and give the same
 mapping and the same estimate as a fit solved from scratch.  The expected values here come
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import yaml
 
-from cwfs_ros.core import estimate_wavefront, load_instrument
-from cwfs_ros.core import mapping as mp
-from cwfs_ros.core.estimator import load_algorithm, pair_geometry
-from cwfs_ros.core.zernike import zernike_basis
-from cwfs_ros.paths import config_dir
+from cwfs_ros.config import config_dir
+from cwfs_ros.wfs import estimate_wavefront, load_instrument
+from cwfs_ros.wfs import mapping as mp
+from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+from cwfs_ros.wfs.zernike import zernike_basis
 
 R00 = yaml.safe_load((config_dir() / "sensors" / "lsst_corners.yaml").read_text())["corners"]["R00"]
 FI0, FE0 = np.array(R00["intra"]["field_deg"]), np.array(R00["extra"]["field_deg"])
@@ -166,7 +166,7 @@ def test_design_tiles_match_the_direct_trace_and_are_reused() -> None:
 def test_distance_transform_dilation_equals_binary_dilation() -> None:
     from scipy.ndimage import binary_dilation
 
-    from cwfs_ros.core.estimator import _dilate
+    from cwfs_ros.wfs.estimator import _dilate
 
     rng = np.random.default_rng(8)
     yy, xx = np.mgrid[:120, :120]
@@ -183,7 +183,7 @@ def test_region_neighbours_match_a_walk_over_the_grid() -> None:
     """The padded look-up table gives each region point's four neighbours, and the
     sentinel where a neighbour is off the region or off the grid (the region touches all
     four grid edges here)."""
-    from cwfs_ros.core.tie import _region_neighbours
+    from cwfs_ros.wfs.tie import _region_neighbours
 
     rng = np.random.default_rng(3)
     nr, nc = 7, 9
@@ -207,7 +207,7 @@ def test_geometry_region_and_common_gram() -> None:
     on first use) is the area average of Z_i Z_j there."""
     from scipy.ndimage import binary_dilation
 
-    from cwfs_ros.core.zernike import gram_matrix
+    from cwfs_ros.wfs.zernike import gram_matrix
 
     inst = load_instrument("lsst")
     algo = load_algorithm("lsq")

@@ -11,15 +11,9 @@ import array
 import numpy as np
 import pytest
 
-from cwfs_ros.core.errors import ImageError
-from cwfs_ros.core.images import (
-    ENCODINGS,
-    ImageDecodeError,
-    Orientation,
-    decode_image,
-    orient_image,
-    pad_stamp,
-)
+from cwfs_ros.errors import ImageError
+from cwfs_ros.runtime.images import ENCODINGS, ImageDecodeError, decode_image
+from cwfs_ros.wfs.orientation import Orientation, orient_image, pad_stamp
 
 RNG = np.random.default_rng(3)
 # encoding -> numpy type of the pixels
@@ -145,7 +139,7 @@ def test_pad_stamp_uses_the_border_median():
 # ------------------------------------------------------------------ message conversion
 def test_image_msg_round_trip_through_the_node_converter():
     pytest.importorskip("sensor_msgs")
-    from cwfs_ros.nodes.convert import image_msg, image_record_from_msg
+    from cwfs_ros.ros.convert import image_msg, image_record_from_msg
 
     # Counts of a detector (the node's decoder refuses full-scale and wrapped ones).
     a = RNG.integers(-100_000, 1_000_000, size=(5, 9)).astype(np.float64)
@@ -164,7 +158,7 @@ def test_bad_image_msg_gives_a_record_with_the_reason():
     pytest.importorskip("sensor_msgs")
     from sensor_msgs.msg import Image
 
-    from cwfs_ros.nodes.convert import image_record_from_msg
+    from cwfs_ros.ros.convert import image_record_from_msg
 
     m = Image(height=160, width=160, encoding="32FC1", step=640)
     m.data = b"\0" * 1000  # truncated

@@ -4,7 +4,7 @@ Images are ray-traced by the simulator (batoid, independent of the estimator's m
 model); what a case holds (saturated at a known level, exchanged, genuine) is known by
 construction, and the expected pixel counts are counted here with numpy.  The false-positive
 and detection rates over many more realisations are measured by
-``bench/bench_input_checks.py`` (README of :mod:`cwfs_ros.core.checks`).
+``bench/bench_input_checks.py`` (README of :mod:`cwfs_ros.wfs.checks`).
 """
 
 from __future__ import annotations
@@ -18,17 +18,17 @@ import pytest
 import yaml
 from scipy.ndimage import gaussian_filter
 
-from cwfs_ros.core import estimate_wavefront, load_instrument
-from cwfs_ros.core.corner_pool import synthetic_donut
-from cwfs_ros.core.donuts import prepare_donut
-from cwfs_ros.core.errors import (
+from cwfs_ros.config import config_dir
+from cwfs_ros.errors import (
     ConfigError,
     ImageError,
     SaturatedImageError,
     SwappedImagesError,
 )
-from cwfs_ros.core.io import read_image
-from cwfs_ros.paths import config_dir
+from cwfs_ros.runtime.corner_pool import synthetic_donut
+from cwfs_ros.wfs import estimate_wavefront, load_instrument
+from cwfs_ros.wfs.donuts import prepare_donut
+from cwfs_ros.wfs.io import read_image
 
 CORNERS = yaml.safe_load((config_dir() / "sensors" / "lsst_corners.yaml").read_text())["corners"]
 ZEMAX = Path(__file__).parent / "data" / "zemax"

@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
+from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.field import FIELD_RADIUS_DEG, field_rms_nm, gq_field_points_deg, gq_weights
 from cwfs_ros.ofc.kalman import KalmanOFC, KalmanSettings
 from cwfs_ros.ofc.model import OpticalModel, double_zernike_at
@@ -29,7 +30,7 @@ def truth() -> TruthModel:
 
 def rigid_start() -> np.ndarray:
     """Both hexapods decentred by 0.4-0.9 mm and tilted by 10-25 arcsec, pistons too."""
-    dof = np.zeros(C.N_DOF)
+    dof = np.zeros(layout.N_DOF)
     dof[:10] = [25.0, 600.0, -450.0, 0.004, -0.006, -30.0, -900.0, 500.0, 0.003, 0.007]
     return dof
 
@@ -53,9 +54,9 @@ def test_fast_double_zernike_matches_galsims_object():
     model = OpticalModel("ts_ofc")
     from cwfs_ros.ofc.model import _dz_nm  # noqa: PLC2701 - the data under test
 
-    fast = double_zernike_at(_dz_nm("ts_ofc"), fields).reshape(-1, C.N_DOF)
+    fast = double_zernike_at(_dz_nm("ts_ofc"), fields).reshape(-1, layout.N_DOF)
     np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
-    assert model.at(0.0).H.shape == (C.N_MEAS, C.N_DOF)
+    assert model.at(0.0).H.shape == (layout.N_MEAS, layout.N_DOF)
     at = model.at(35.0)  # the design at rotated corners, the same way
     np.testing.assert_allclose(at.intrinsic_nm,
                                C.intrinsic_vector_nm("r", at.corner_fields_deg), atol=1e-6)
@@ -102,17 +103,17 @@ def test_pid_scheme_leaves_the_decentres(truth):
 def test_unobservable_directions_are_dropped_and_reported():
     ctl = KalmanOFC(OpticalModel("bundled"))
     obs = ctl.observability_report()
-    assert 10 <= obs.n_kept < C.N_DOF
+    assert 10 <= obs.n_kept < layout.N_DOF
     assert np.all(np.diff(obs.snr) <= 1e-12)
     y = ctl.model.at(0.0).intrinsic_nm + 0.0
-    res = ctl.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=1)
-    assert res.valid and res.n_dropped == C.N_DOF - obs.n_kept
+    res = ctl.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=1)
+    assert res.valid and res.n_dropped == layout.N_DOF - obs.n_kept
     assert "snr" in res.dropped and "nm over the field" in res.dropped
     # a mask the corners cannot see at all is refused, naming the DoF to drop
-    blind = np.zeros(C.N_DOF, bool)
+    blind = np.zeros(layout.N_DOF, bool)
     blind[C.load_dof_spec().index("M1M3_B20")] = True
     ctl2 = KalmanOFC(OpticalModel("bundled"), dof_mask=blind)
-    res2 = ctl2.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=1)
+    res2 = ctl2.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=1)
     assert not res2.valid and res2.status.startswith("unobservable") and "M1M3_B20" in res2.status
     assert not np.any(res2.dof)
 
@@ -125,11 +126,11 @@ def test_no_creep_over_200_visits_at_the_noise_floor():
     intr = ctl.model.at(0.0).intrinsic_nm
     rng = np.random.default_rng(5)
     rng_range = C.load_dof_spec().range
-    x = np.zeros(C.N_DOF)
+    x = np.zeros(layout.N_DOF)
     frac = []
     for k in range(200):
-        y = intr + A @ x + rng.normal(0, 15.0, C.N_MEAS)
-        res = ctl.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=k + 1)
+        y = intr + A @ x + rng.normal(0, 15.0, layout.N_MEAS)
+        res = ctl.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=k + 1)
         assert res.valid
         x = x + res.dof
         frac.append(np.abs(x[10:] / rng_range[10:]).max())
@@ -141,10 +142,10 @@ def test_no_creep_over_200_visits_at_the_noise_floor():
 def test_bounds_hold_and_the_state_never_leaves_the_strokes():
     ctl = KalmanOFC(OpticalModel("bundled"))
     at = ctl.model.at(0.0)
-    x = np.zeros(C.N_DOF)
+    x = np.zeros(layout.N_DOF)
     x[10] = 0.4 * C.load_dof_spec().range[10]  # a bending mode beyond one step
     y = at.intrinsic_nm + at.H @ x
-    res = ctl.step(y, uncertainty_nm=np.full(C.N_MEAS, 15.0), stamp_ns=1)
+    res = ctl.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=1)
     assert res.valid
     assert np.all(np.abs(res.dof) <= ctl.max_step * (1 + 1e-9))
     assert res.clipped[10]
@@ -154,10 +155,10 @@ def test_bounds_hold_and_the_state_never_leaves_the_strokes():
 def test_state_persists_and_an_applied_visit_is_refused_after_restart(tmp_path):
     ctl = KalmanOFC(OpticalModel("bundled"))
     at = ctl.model.at(0.0)
-    x = np.zeros(C.N_DOF)
+    x = np.zeros(layout.N_DOF)
     x[1] = 300.0
     for k in range(3):
-        res = ctl.step(at.intrinsic_nm + at.H @ x, uncertainty_nm=np.full(C.N_MEAS, 15.0),
+        res = ctl.step(at.intrinsic_nm + at.H @ x, uncertainty_nm=np.full(layout.N_MEAS, 15.0),
                        stamp_ns=1000 + k)
         x = x + res.dof
     path = tmp_path / "state" / "ofc.json"
@@ -196,9 +197,9 @@ def test_rotator_history():
 def test_absurd_uncertainties_carry_no_weight_and_do_not_break_the_solve():
     ctl = KalmanOFC(OpticalModel("bundled"))
     at = ctl.model.at(0.0)
-    x = np.zeros(C.N_DOF)
+    x = np.zeros(layout.N_DOF)
     x[1] = 300.0
-    unc = np.full(C.N_MEAS, 15.0)
+    unc = np.full(layout.N_MEAS, 15.0)
     unc[:19] = 1e300  # R00 says: do not trust me
     unc[19] = 0.0  # not reported: the default
     res = ctl.step(at.intrinsic_nm + at.H @ x, uncertainty_nm=unc, stamp_ns=1)
@@ -241,14 +242,14 @@ def test_a_sudden_change_after_convergence_is_followed_at_once():
     A = C.sensitivity_for_source("bundled").matrix_nm
     intr = ctl.model.at(0.0).intrinsic_nm
     rng = np.random.default_rng(8)
-    x = np.zeros(C.N_DOF)
-    unc = np.full(C.N_MEAS, 15.0)
+    x = np.zeros(layout.N_DOF)
+    unc = np.full(layout.N_MEAS, 15.0)
     for k in range(30):
-        x = x + ctl.step(intr + A @ x + rng.normal(0, 15.0, C.N_MEAS), uncertainty_nm=unc,
+        x = x + ctl.step(intr + A @ x + rng.normal(0, 15.0, layout.N_MEAS), uncertainty_nm=unc,
                          stamp_ns=k + 1).dof
     x[10] += 0.3 * C.load_dof_spec().range[10]
     before = np.linalg.norm(A @ x) / 2
-    res = ctl.step(intr + A @ x + rng.normal(0, 15.0, C.N_MEAS), uncertainty_nm=unc,
+    res = ctl.step(intr + A @ x + rng.normal(0, 15.0, layout.N_MEAS), uncertainty_nm=unc,
                    stamp_ns=31)
     assert res.valid and "inflated" in res.status, res.status
     x = x + res.dof
@@ -262,19 +263,19 @@ def test_data_no_telescope_could_give_is_refused_not_solved():
     inconsistent (each used to drive an actuator to its stroke), state unchanged."""
     ctl = KalmanOFC(OpticalModel("bundled"), max_abs_zernike_nm=None)
     z0 = ctl.model.at(0.0).intrinsic_nm
-    noise = np.random.default_rng(1).normal(0, 10, C.N_MEAS)
-    unc = np.full(C.N_MEAS, 15.0)
+    noise = np.random.default_rng(1).normal(0, 10, layout.N_MEAS)
+    unc = np.full(layout.N_MEAS, 15.0)
     wild = z0 + noise
     wild[:19] += 19000.0
     tight = KalmanOFC(OpticalModel("bundled"), KalmanSettings(model_floor_nm=0.5))
     cases = [(ctl, wild, unc), (ctl, z0 + 1e300, unc),
-             (tight, z0 + noise, np.full(C.N_MEAS, 1e-20))]
+             (tight, z0 + noise, np.full(layout.N_MEAS, 1e-20))]
     for k, (c, y, u) in enumerate(cases):
         res = c.step(y, uncertainty_nm=u, stamp_ns=k + 1)
         assert not res.valid and res.status.startswith("inconsistent_measurement"), res.status
         assert not np.any(res.dof) and c.n_steps == 0 and not np.any(c.dof_total)
     # a large but real state within the strokes is not refused
-    x = np.zeros(C.N_DOF)
+    x = np.zeros(layout.N_DOF)
     x[:10] = [50, 1000, -1000, 0.0083, -0.0083, -50, -1000, 1000, 0.0083, 0.0083]
     res = ctl.step(z0 + ctl.model.at(0.0).H @ x, uncertainty_nm=unc, stamp_ns=10)
     assert res.valid, res.status
@@ -284,7 +285,7 @@ def test_uncertainties_that_are_not_one_sigmas_are_refused():
     ctl = KalmanOFC(OpticalModel("bundled"))
     z0 = ctl.model.at(0.0).intrinsic_nm
     for bad in (np.nan, np.inf, -1.0):
-        u = np.full(C.N_MEAS, 15.0)
+        u = np.full(layout.N_MEAS, 15.0)
         u[20] = bad
         res = ctl.step(z0, uncertainty_nm=u, stamp_ns=1)
         assert not res.valid and res.status.startswith("bad_uncertainty") and "R04" in res.status
@@ -310,7 +311,7 @@ def test_a_state_record_no_telescope_could_have_is_refused():
     rng = ctl.spec.range
     forged = [
         {**good, "dof_total": 2 * rng},
-        {**good, "x": np.full(C.N_DOF, 1e300)},
+        {**good, "x": np.full(layout.N_DOF, 1e300)},
         {**good, "P": -good["P"]},
         {**good, "controller": "bogus"},
         {**good, "n_steps": "abc"},

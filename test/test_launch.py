@@ -1,4 +1,4 @@
-"""The launcher (cwfs_ros.launch): parameter layering, --ros-args, FastDDS profile, CLI parsers."""
+"""The launcher (cwfs_ros.ros.launch): parameter layering, --ros-args, FastDDS profile, CLIs."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from cwfs_ros import launch as L
+from cwfs_ros.ros import launch as L
 
 
 def test_ros_arguments_layer_defaults_user_files_and_ros_args(tmp_path):
@@ -25,7 +25,7 @@ def test_ros_arguments_layer_defaults_user_files_and_ros_args(tmp_path):
 
 def test_params_yaml_overlay_and_ros_args_reach_the_node(tmp_path, ros_domain):
     rclpy = pytest.importorskip("rclpy")
-    from cwfs_ros.nodes.ofc_node import OfcNode
+    from cwfs_ros.ros.ofc_node import OfcNode
 
     user = tmp_path / "mine.yaml"
     user.write_text("ofc_node:\n  ros__parameters:\n    kp: 0.25\n    ki: 0.05\n"
@@ -61,10 +61,10 @@ def test_nodes_without_a_params_file_start_with_its_values(ros_context):
     yaml = pytest.importorskip("yaml")
     from rclpy.parameter import Parameter
 
-    from cwfs_ros.nodes.camera_sim_node import CameraSimNode
-    from cwfs_ros.nodes.ofc_node import OfcNode
-    from cwfs_ros.nodes.wavefront_node import WavefrontNode
-    from cwfs_ros.params import flatten
+    from cwfs_ros.ros.camera_sim_node import CameraSimNode
+    from cwfs_ros.ros.ofc_node import OfcNode
+    from cwfs_ros.ros.params import flatten
+    from cwfs_ros.ros.wavefront_node import WavefrontNode
 
     raw = yaml.safe_load(L.default_params_file().read_text())
     # workers 1 and one corner: a light pool; both are compared as overridden.
@@ -99,8 +99,8 @@ def test_bundled_defaults_are_typed_by_the_descriptor_and_checked(monkeypatch):
     string where a number is needed (YAML reads 1e6 as one), a float for an integer, or a
     name the file lacks is a ConfigError naming the file and the key."""
     pytest.importorskip("rclpy")
-    from cwfs_ros.core.errors import ConfigError
-    from cwfs_ros.nodes import common
+    from cwfs_ros.errors import ConfigError
+    from cwfs_ros.ros import common
 
     monkeypatch.setattr(common, "_bundled_params", lambda path: {
         "x_node": {"rate": 5, "big": "1e6", "count": 2.5, "flag": True, "n": 3}})
@@ -125,11 +125,14 @@ def test_bundled_defaults_are_typed_by_the_descriptor_and_checked(monkeypatch):
 
 
 def test_fastdds_profile_is_set_unless_already_set(monkeypatch):
-    monkeypatch.delenv(L.PROFILE_ENV, raising=False)
-    path = L.ensure_fastdds_profile()
+    from cwfs_ros.ros import dds
+
+    monkeypatch.delenv("FASTRTPS_DEFAULT_PROFILES_FILE", raising=False)
+    path = dds.ensure_fastdds_profile()
     assert path and path.endswith("config/fastdds_profile.xml") and os.path.isfile(path)
-    monkeypatch.setenv(L.PROFILE_ENV, "/somewhere/else.xml")
-    assert L.ensure_fastdds_profile() == "/somewhere/else.xml"
+    assert os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] == path
+    monkeypatch.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", "/somewhere/else.xml")
+    assert dds.ensure_fastdds_profile() == "/somewhere/else.xml"
 
 
 def test_subcommand_parsers():
@@ -211,12 +214,12 @@ def test_shipped_parameter_files_pass_the_check(ros_domain):
     """params.yaml and sim.yaml only set declared parameters, with the declared types."""
     import rclpy
 
-    from cwfs_ros.params import check_declared
+    from cwfs_ros.ros.params import check_declared
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     try:
-        from cwfs_ros.nodes.ofc_node import OfcNode
+        from cwfs_ros.ros.ofc_node import OfcNode
 
         node = OfcNode(context=ctx)
         kinds = L.declared_kinds(node)

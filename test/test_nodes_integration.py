@@ -1,6 +1,6 @@
 """Headless integration: wavefront_node + ofc_node over real DDS, fed ray-traced donuts.
 
-The nodes are started as ``cwfs-ros bringup`` does (:func:`cwfs_ros.launch.run_nodes`:
+The nodes are started as ``cwfs-ros bringup`` does (:func:`cwfs_ros.ros.launch.run_nodes`:
 config/params.yaml, composed on one MultiThreadedExecutor), in this process, on the test's own
 rclpy Context and DDS domain. A tester node on the same context publishes the 8 images of a
 visit (160x160 stamps, donut centred on the chief ray, rendered by cwfs_ros.sim with a known
@@ -25,11 +25,11 @@ from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector  # noq
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Image, JointState  # noqa: E402
 
-from cwfs_ros.core.visits import CORNERS  # noqa: E402
-from cwfs_ros.launch import run_nodes  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor as ProjectExecutor  # noqa: E402
+from cwfs_ros.layout import CORNERS  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor as ProjectExecutor  # noqa: E402
+from cwfs_ros.ros.launch import run_nodes  # noqa: E402
 
 WL = 622.0
 N_PHOTONS = 5e5
@@ -236,7 +236,7 @@ def test_visit_through_both_nodes(visit, system):
 
 
 def system_mid(c):
-    from cwfs_ros.core.visits import load_corner_fields
+    from cwfs_ros.runtime.visits import load_corner_fields
 
     f = load_corner_fields()[c]
     return [(f["intra"][0] + f["extra"][0]) / 2, (f["intra"][1] + f["extra"][1]) / 2]
@@ -244,9 +244,10 @@ def system_mid(c):
 
 def test_node_output_equals_a_direct_core_call(visit):
     """The node is a thin wrapper: same numbers as estimate_wavefront on the same stamps."""
-    from cwfs_ros.core.corner_pool import CornerJob, EstimatorSettings, run_corner_job
-    from cwfs_ros.core.estimator import estimate_wavefront
-    from cwfs_ros.core.visits import load_corner_fields
+    from cwfs_ros.runtime.corner_pool import CornerJob, run_corner_job
+    from cwfs_ros.runtime.visits import load_corner_fields
+    from cwfs_ros.wfs.estimator import estimate_wavefront
+    from cwfs_ros.wfs.settings import EstimatorSettings
 
     images, _ = visit
     f = load_corner_fields()["R44"]

@@ -21,12 +21,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from cwfs_ros.core import control as C  # noqa: E402
-from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
-from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg  # noqa: E402
+from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 
 # Visit stamps in the past of any clock running the tests (ofc_node refuses a visit stamped
 # more than max_future_s ahead of its clock).
@@ -335,7 +335,7 @@ def test_wavefront_node_refuses_to_start_with_a_missing_selection_file(ros_conte
     """The frame path's selection file (detection limits, the fitted noise model) is read by
     the workers at every visit; a mistyped path stops the node at start, naming the file,
     instead of making every frame visit invalid or falling back to built-in numbers."""
-    from cwfs_ros.core.errors import ConfigError
+    from cwfs_ros.errors import ConfigError
 
     missing = tmp_path / "no_such_selection.yaml"
     with pytest.raises(ConfigError, match="no_such_selection.yaml"):
@@ -430,7 +430,7 @@ def test_a_worker_lost_during_warm_up_is_warmed_again(ros_context, monkeypatch):
     from concurrent.futures import Future
     from concurrent.futures.process import BrokenProcessPool
 
-    from cwfs_ros.core.corner_pool import CornerPool
+    from cwfs_ros.runtime.corner_pool import CornerPool
 
     real = CornerPool.warm_up
     failed: list[str] = []

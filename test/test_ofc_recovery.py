@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cwfs_ros.core import control as C
+from cwfs_ros.ofc import control as C
 
 RIGID = list(range(10))
 FLIPPED = [0, 1, 3, 5, 6, 8]

@@ -1,6 +1,6 @@
 """ofc_node killed at visit 5 and restarted: it continues from its persisted state.
 
-ofc_node runs in its own process (``python -m cwfs_ros.launch node ofc_node``, as a user
+ofc_node runs in its own process (``python -m cwfs_ros.ros.launch node ofc_node``, as a user
 starts it) with ``state_file`` set; this process is the telescope: it publishes each visit's
 76-vector, computed from its own state with the *ts_ofc* matrix while the controller uses
 the bundled one, and applies each valid correction. After the correction of visit 5 the node
@@ -28,9 +28,10 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 
-from cwfs_ros.core import control as C  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros import layout  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SEC = 1_000_000_000
@@ -40,7 +41,7 @@ def _start_ofc(domain: int, state_file: Path) -> subprocess.Popen:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
-    cmd = [sys.executable, "-m", "cwfs_ros.launch", "node", "ofc_node", "--ros-args",
+    cmd = [sys.executable, "-m", "cwfs_ros.ros.launch", "node", "ofc_node", "--ros-args",
            "-p", f"state_file:={state_file}", "-p", "rotator_angle_source:=fixed"]
     return subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
@@ -52,7 +53,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
     state_file = tmp_path / "ofc_state.json"
     truth = C.SensitivityMatrix.from_ts_ofc(fields_deg=C.corner_mid_field_points_deg())
     intrinsic = C.intrinsic_vector_nm("r", truth.field_points_deg)
-    telescope = np.zeros(C.N_DOF)
+    telescope = np.zeros(layout.N_DOF)
     telescope[[1, 2, 6, 8]] = [500.0, -300.0, 400.0, 0.004]  # decentres and a camera tilt
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
@@ -79,7 +80,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         m.zernikes_nm = intrinsic + wf
         m.corner_valid = [True] * 4
         m.corners = ["R00", "R04", "R40", "R44"]
-        m.uncertainty_nm = np.full(C.N_MEAS, 10.0)
+        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
         m.n_pairs = [1] * 4
         seen = len(got.get(stamp, []))
         pub.publish(m)
@@ -127,7 +128,7 @@ def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tm
     the restart guarantee is never silently lost."""
     from rclpy.parameter import Parameter
 
-    from cwfs_ros.nodes.ofc_node import OfcNode
+    from cwfs_ros.ros.ofc_node import OfcNode
 
     blocker = tmp_path / "not_a_dir"
     blocker.write_text("x")
@@ -140,13 +141,13 @@ def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tm
         m = WavefrontVector()
         stamp = (time.time_ns() // SEC - 100) * SEC
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
-        x = np.zeros(C.N_DOF)
+        x = np.zeros(layout.N_DOF)
         x[1] = 300.0
         sm = C.sensitivity_for_source("bundled")
         m.zernikes_nm = C.intrinsic_vector_nm("r", sm.field_points_deg) + sm.matrix_nm @ x
         m.corner_valid = [True] * 4
         m.corners = ["R00", "R04", "R40", "R44"]
-        m.uncertainty_nm = np.full(C.N_MEAS, 10.0)
+        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
         m.n_pairs = [1] * 4
         ofc._on_vector(m)
         assert len(sent) == 1 and not sent[0].valid, sent

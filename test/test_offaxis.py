@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import yaml
 
-from cwfs_ros.core import estimate_wavefront, load_instrument
-from cwfs_ros.core.estimator import load_algorithm, pair_geometry
-from cwfs_ros.core.mapping import design_zernikes_nm, nominal_mapping, poly10_tables
-from cwfs_ros.core.zernike import annulus_quadrature, gram_matrix, gram_summary, zernike_basis
-from cwfs_ros.paths import config_dir
+from cwfs_ros.config import config_dir
+from cwfs_ros.wfs import estimate_wavefront, load_instrument
+from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+from cwfs_ros.wfs.mapping import design_zernikes_nm, nominal_mapping, poly10_tables
+from cwfs_ros.wfs.zernike import annulus_quadrature, gram_matrix, gram_summary, zernike_basis
 
 CORNERS = yaml.safe_load((config_dir() / "sensors" / "lsst_corners.yaml").read_text())["corners"]
 
@@ -210,7 +210,7 @@ def test_lsst_ne_sn25_with_the_papers_tables() -> None:
     design that made it, every term is within 13 nm of the original code's output (the
     benchmark target is 10 nm; the reference's own two solvers differ by 9.9 nm).
     """
-    from cwfs_ros.core.io import read_image
+    from cwfs_ros.wfs.io import read_image
 
     intra = read_image(DATA / "LSST_NE_SN25" / "z11_0.25_intra.txt")
     extra = read_image(DATA / "LSST_NE_SN25" / "z11_0.25_extra.txt")
@@ -251,7 +251,7 @@ def test_orthonormal_feedback_converges_to_the_same_estimate() -> None:
     On a vignetted off-axis pair with 0.25 wave of Z11 to find (LSST_NE_SN25, 1.185 deg, the
     paper's tables of its design), so that the estimate is not the design alone.
     """
-    from cwfs_ros.core.io import read_image
+    from cwfs_ros.wfs.io import read_image
 
     intra = read_image(DATA / "LSST_NE_SN25" / "z11_0.25_intra.txt")
     extra = read_image(DATA / "LSST_NE_SN25" / "z11_0.25_extra.txt")
@@ -273,7 +273,7 @@ def test_fam_edge_field_bound() -> None:
     <= 25 nm).  Without the rim registration this field was 13-17 nm rms with terms up to
     40 nm (the vignetting edges of the ZEMAX images differ from batoid's by about a pixel).
     """
-    from cwfs_ros.core.io import read_image
+    from cwfs_ros.wfs.io import read_image
 
     intra = read_image(DATA / "FAM" / "Image_intra_R34_S12.txt")
     extra = read_image(DATA / "FAM" / "Image_extra_R34_S12.txt")
@@ -333,8 +333,8 @@ def test_rim_registration_with_a_wrong_vignetting_model() -> None:
 
 
 def test_poly10_and_feedback_configuration_errors() -> None:
-    from cwfs_ros.core.errors import ConfigError
-    from cwfs_ros.core.instrument import Instrument
+    from cwfs_ros.errors import ConfigError
+    from cwfs_ros.wfs.instrument import Instrument
 
     base = load_instrument("lsst_poly10")
     with pytest.raises(ConfigError, match="mapping_tables"):
@@ -350,7 +350,7 @@ def test_poly10_and_feedback_configuration_errors() -> None:
                                                ("LSST_C_SN26", "lsst_analytic")])
 def test_rim_registration_leaves_unvignetted_pairs_alone(folder: str, instrument: str) -> None:
     """On axis the centroid alignment is already right: registering changes < 3 nm."""
-    from cwfs_ros.core.io import read_image
+    from cwfs_ros.wfs.io import read_image
 
     intra = read_image(DATA / folder / "z7_0.25_intra.txt")
     extra = read_image(DATA / folder / "z7_0.25_extra.txt")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cwfs_ros.core.control import load_dof_spec
+from cwfs_ros.ofc.control import load_dof_spec
 from cwfs_ros.sim.perturbation import (
     random_perturbation,
     stroke_perturbation,

@@ -16,11 +16,11 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
+from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 
 SEC = 1_000_000_000
 

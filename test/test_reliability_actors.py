@@ -14,8 +14,8 @@ rclpy = pytest.importorskip("rclpy")
 from cwfs_msgs.msg import SimTruth  # noqa: E402
 from test_camera_sim import correction, make_system, visit  # noqa: E402
 
-from cwfs_ros.core.control import load_dof_spec  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS  # noqa: E402
+from cwfs_ros.ofc.control import load_dof_spec  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS  # noqa: E402
 
 
 def test_impostor_corrections_move_nothing(ros_domain):

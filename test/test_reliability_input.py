@@ -16,10 +16,10 @@ pytest.importorskip("sensor_msgs")
 
 from test_input_checks import _estimate, _expected  # noqa: E402
 
-from cwfs_ros.core.errors import SaturatedImageError  # noqa: E402
-from cwfs_ros.core.images import ImageDecodeError, decode_checked  # noqa: E402
-from cwfs_ros.core.instrument import load_instrument  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg, image_record_from_msg  # noqa: E402
+from cwfs_ros.errors import SaturatedImageError  # noqa: E402
+from cwfs_ros.ros.convert import image_msg, image_record_from_msg  # noqa: E402
+from cwfs_ros.runtime.images import ImageDecodeError, decode_checked  # noqa: E402
+from cwfs_ros.wfs.instrument import load_instrument  # noqa: E402
 
 
 def _reason(a: np.ndarray, encoding: str, big: bool = False,

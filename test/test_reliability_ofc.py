@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from cwfs_ros.core import control as C
+from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc import plausibility as P
 
 T = 1_750_000_000_000_000_000
@@ -114,8 +114,8 @@ from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
-from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 
 
 def _vector(stamp: int, z: np.ndarray, unc=None, pairs=None) -> WavefrontVector:

@@ -1,11 +1,11 @@
 """One exposure, one stamp: conflicting images; bounded pending memory; frame_id; uncertainty
-carried from the corners into the visit vector (no ROS: cwfs_ros.core.visits)."""
+carried from the corners into the visit vector (no ROS: cwfs_ros.runtime.visits)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from cwfs_ros.core.visits import (
+from cwfs_ros.runtime.visits import (
     CornerEntry,
     ImageRecord,
     PairingBuffer,

@@ -17,11 +17,11 @@ from cwfs_msgs.msg import CornerWavefront, WavefrontVector  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.core.corner_pool import synthetic_donut  # noqa: E402
-from cwfs_ros.nodes.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.convert import image_msg  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.wavefront_node import WavefrontNode, frame_id_problem  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.convert import image_msg  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode, frame_id_problem  # noqa: E402
+from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 
 T = 1_750_000_000_000_000_000
 SEC = 1_000_000_000

@@ -1,10 +1,10 @@
 """Record a simulated closed-loop run, replay it offline, and get the live results back.
 
 The graph runs in this process as ``cwfs-ros bringup --sim`` would (camera_sim_node +
-wavefront_node + ofc_node via :func:`cwfs_ros.launch.run_nodes`, on the test's own Context and
-DDS domain), with the bag recorder (:class:`cwfs_ros.bag.Recorder`) on the same executor. Two
+wavefront_node + ofc_node via :func:`cwfs_ros.ros.launch.run_nodes`, on the test's own Context and
+DDS domain), with the bag recorder (:class:`cwfs_ros.ros.bag.Recorder`) on the same executor. Two
 visits are triggered; an independent tester node keeps every CornerWavefront and
-DofCorrection it receives over DDS. After the graph is shut down, :func:`cwfs_ros.replay.replay`
+DofCorrection it receives over DDS. After the graph is shut down, :func:`cwfs_ros.cli.replay.replay`
 re-runs the estimator and the OFC solver on the bag with no middleware, and its CSV files must
 hold the very numbers the live nodes published. They are computed by the same float64 code
 (worker processes and replay both pin BLAS to one thread), so the tolerance is 1e-6 nm for the
@@ -36,11 +36,11 @@ pytest.importorskip("cwfs_ros.sim")
 from cwfs_msgs.msg import CornerWavefront, DofCorrection  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from cwfs_ros import bag as B  # noqa: E402
-from cwfs_ros import replay as R  # noqa: E402
-from cwfs_ros.cli import main as cli_main  # noqa: E402
-from cwfs_ros.launch import run_nodes  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.cli import replay as R  # noqa: E402
+from cwfs_ros.cli.main import main as cli_main  # noqa: E402
+from cwfs_ros.ros import bag as B  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.launch import run_nodes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 VISITS = 2
@@ -145,9 +145,9 @@ def _estimate_next_to_the_corners() -> None:
     live workers, fresh processes, traced directly.  The replay must start from a fresh
     worker's state (core.estimator.reset_caches), whatever ran before it in its process;
     without that it was 0.075 nm off the live estimates after test_blur had run."""
-    from cwfs_ros.core import load_instrument
-    from cwfs_ros.core.estimator import load_algorithm, pair_geometry
-    from cwfs_ros.core.visits import load_corner_fields
+    from cwfs_ros.runtime.visits import load_corner_fields
+    from cwfs_ros.wfs import load_instrument
+    from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
 
     inst = load_instrument("lsst")
     algo = load_algorithm("lsq")
@@ -287,7 +287,7 @@ def test_replay_cli_matches_even_with_more_blas_threads(recorded_run, tmp_path):
     argv = ["replay", str(recorded_run["bag"]), "--out", str(tmp_path / "o"), "--params",
             str(recorded_run["overlay"]), "--no-progress", "--no-plots"]
     # offline: the middleware is never loaded
-    code = ("import sys; from cwfs_ros.cli import main; rc = main(sys.argv[1:]); "
+    code = ("import sys; from cwfs_ros.cli.main import main; rc = main(sys.argv[1:]); "
             "assert 'rclpy' not in sys.modules, 'replay loaded rclpy'; sys.exit(rc)")
     proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
                           timeout=120, cwd=ROOT, env=env)
@@ -327,7 +327,7 @@ def test_replay_layers_sim_yaml_for_a_simulated_run(recorded_run, replayed, tmp_
     # Without any overlay, the simulated run's gains come from config/sim.yaml ...
     import yaml as _yaml
 
-    from cwfs_ros.launch import sim_params_file
+    from cwfs_ros.ros.launch import sim_params_file
 
     sim_kp = _yaml.safe_load(sim_params_file().read_text())["ofc_node"]["ros__parameters"]["kp"]
     auto = R.replay(recorded_run["bag"], tmp_path / "auto", progress=False, plots=False)

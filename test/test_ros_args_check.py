@@ -8,8 +8,8 @@ import os
 
 import pytest
 
-from cwfs_ros import launch as L
-from cwfs_ros.params import check_overrides
+from cwfs_ros.ros import launch as L
+from cwfs_ros.ros.params import check_overrides
 
 OFC = {"kp": "double", "dry_run": "bool", "band": "string", "dof_mask": "bool_array",
        "seeing_fwhm_arcsec": "double"}

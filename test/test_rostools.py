@@ -17,7 +17,7 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
 
 from cwfs_ros import cli  # noqa: E402
-from cwfs_ros.params import check_declared, flatten  # noqa: E402
+from cwfs_ros.ros.params import check_declared, flatten  # noqa: E402
 
 
 def _params_yaml(node: str) -> dict:
@@ -30,7 +30,7 @@ def graph(ros_domain, monkeypatch):
     """An ofc_node and a publisher node spinning on the test's domain; the tools' domain."""
     from rclpy.executors import MultiThreadedExecutor
 
-    from cwfs_ros.nodes.ofc_node import OfcNode
+    from cwfs_ros.ros.ofc_node import OfcNode
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
@@ -112,7 +112,7 @@ def test_param_set_changes_the_running_node_or_says_why_not(graph, capsys):
 
 
 def test_param_dump_is_a_parameter_file_of_the_live_values(graph, capsys, tmp_path):
-    from cwfs_ros.launch import declared_kinds
+    from cwfs_ros.ros.launch import declared_kinds
 
     ofc, _ = graph
     code, out, _ = _run(capsys, "param", "dump", "ofc_node")
@@ -219,7 +219,7 @@ def test_topic_hz_prints_ros2s_report(graph, capsys):
 
 
 def test_hz_report_arithmetic():
-    from cwfs_ros.rostools import hz_report
+    from cwfs_ros.ros.tools import hz_report
 
     # Deltas 0.1, 0.3 s: mean 0.2 s (5 Hz), std 0.1 s, window 3 messages.
     text = hz_report([0, 100_000_000, 400_000_000])
@@ -233,7 +233,7 @@ def test_tools_see_a_graph_kept_to_this_host(ros_domain, monkeypatch, capsys):
     inspect it: a node started so is listed by a tool with the default range."""
     from rclpy.executors import SingleThreadedExecutor
 
-    from cwfs_ros.launch import DISCOVERY_ENV, SIM_DISCOVERY_RANGE
+    from cwfs_ros.ros.launch import DISCOVERY_ENV, SIM_DISCOVERY_RANGE
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
     monkeypatch.setenv(DISCOVERY_ENV, SIM_DISCOVERY_RANGE)

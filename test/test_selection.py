@@ -13,22 +13,20 @@ import batoid
 import numpy as np
 import pytest
 
-from cwfs_ros.core.combination import (
+from cwfs_ros.frames.combination import (
     CombinationConfig,
     combine_pairs,
     pair_noise_scale,
     pair_sigma_nm,
 )
-from cwfs_ros.core.corner_pool import EstimatorSettings
-from cwfs_ros.core.detection import (
+from cwfs_ros.frames.detection import (
     DetectionConfig,
     detect_donuts,
     estimate_background,
     expected_donut_radii_px,
 )
-from cwfs_ros.core.field_position import half_chip_model, load_half_chips
-from cwfs_ros.core.instrument import load_instrument
-from cwfs_ros.core.selection import (
+from cwfs_ros.frames.field_position import half_chip_model, load_half_chips
+from cwfs_ros.frames.selection import (
     CornerFrameJob,
     SelectionConfig,
     StarStamp,
@@ -41,6 +39,8 @@ from cwfs_ros.core.selection import (
 )
 from cwfs_ros.sim.frames import StarSpec, render_frame
 from cwfs_ros.sim.telescope import perturbed_telescope
+from cwfs_ros.wfs.instrument import load_instrument
+from cwfs_ros.wfs.settings import EstimatorSettings
 
 SHAPE = (1000, 900)  # rows, cols
 SKY = 20.0
@@ -302,7 +302,7 @@ def test_inconsistent_pairs_make_the_corner_invalid(intra_frame, extra_frame):
     """The corner is refused, with the reason and the numbers, when its pairs disagree
     beyond the threshold (here set so low that any two real pairs do), and nothing of it
     reaches the published outcome."""
-    from cwfs_ros.core.corner_pool import frame_outcome
+    from cwfs_ros.runtime.corner_pool import frame_outcome
 
     strict = SelectionConfig(detection=_config().detection,
                              combination=CombinationConfig(max_reduced_chi2=1e-9))
@@ -362,7 +362,7 @@ def test_a_noise_free_donut_on_a_binned_pixel_boundary_is_one_source():
 
 
 def _star(side, snr, fx, fy):
-    from cwfs_ros.core.detection import DetectedDonut
+    from cwfs_ros.frames.detection import DetectedDonut
 
     d = DetectedDonut(0.0, 0.0, 1.0, snr, 1.0, snr, 0.0, 0.0, "ok")
     return StarStamp(side, d, np.zeros((2, 2)), (0, 0), (fx, fy))
@@ -434,7 +434,7 @@ def test_later_pairs_start_warm_and_reach_the_cold_answer(intra_frame, extra_fra
 def test_an_unexpected_error_drops_its_pair_only(intra_frame, extra_frame, monkeypatch):
     """A library's or a defect's exception in one pair's estimate (not a CwfsError) is that
     pair's 'internal_error', named; the corner's other pairs are still estimated."""
-    import cwfs_ros.core.estimator as E
+    import cwfs_ros.wfs.estimator as E
 
     stars = _accepted(intra_frame, extra_frame)
     real = E.estimate_wavefront
@@ -481,7 +481,7 @@ def test_swap_check_confirms_the_frames_once_and_refuses_exchanged_frames(intra_
 
 
 def test_multi_pair_uncertainty_factor_scales_combinations_only():
-    from cwfs_ros.core.errors import ConfigError
+    from cwfs_ros.errors import ConfigError
 
     rng = np.random.default_rng(3)
     dep = rng.normal(0.0, 10.0, (3, 19))
@@ -502,7 +502,7 @@ def test_multi_pair_uncertainty_factor_scales_combinations_only():
 def test_detection_refuses_non_finite_frames_anywhere():
     """The finiteness check reads the block sums; a NaN in the rows or columns the binning
     trims off, or values so large that a sum overflows, are caught too."""
-    from cwfs_ros.core.errors import ImageError, NonFiniteImageError
+    from cwfs_ros.errors import ImageError, NonFiniteImageError
 
     kw = dict(outer_radius_px=66.0, inner_radius_px=40.0, stamp_px=160)
     base = np.random.default_rng(1).poisson(30.0, (403, 401)).astype(np.float32)
@@ -521,8 +521,8 @@ def test_detection_refuses_non_finite_frames_anywhere():
 def test_a_missing_selection_file_is_a_config_error(tmp_path):
     """Not the dataclass defaults: the file holds the fitted noise model (measured: a
     mistyped path used to give c = 2000 nm instead of the fitted ~1988 and 6181)."""
-    from cwfs_ros.core.errors import ConfigError
-    from cwfs_ros.core.selection import load_selection_config
+    from cwfs_ros.errors import ConfigError
+    from cwfs_ros.frames.selection import load_selection_config
 
     with pytest.raises(ConfigError, match="not found"):
         load_selection_config(tmp_path / "nope.yaml", solver="lsq")

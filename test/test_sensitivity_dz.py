@@ -11,8 +11,9 @@ import batoid
 import numpy as np
 import pytest
 
-from cwfs_ros.core import control as C
-from cwfs_ros.paths import config_dir
+from cwfs_ros import layout
+from cwfs_ros.config import config_dir
+from cwfs_ros.ofc import control as C
 from cwfs_ros.sim import perturbed_telescope
 
 DZ_FILE = config_dir() / "ofc" / "sensitivity_dz_bundled.npy"
@@ -33,8 +34,8 @@ def _evaluate(dz: np.ndarray, fields: np.ndarray) -> np.ndarray:
     """(19 n, 50) with control's double-Zernike evaluator and ts_ofc's radii."""
     cfg = C.load_optics_config()
     out = np.stack([C._eval_double_zernike(dz[:, :, d], fields, cfg)
-                    for d in range(C.N_DOF)], axis=-1)
-    return out.reshape(-1, C.N_DOF)
+                    for d in range(layout.N_DOF)], axis=-1)
+    return out.reshape(-1, layout.N_DOF)
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -68,9 +69,9 @@ def test_matches_batoid_off_the_fit_grid(dz):
         tel = perturbed_telescope(dof, "r")
         return batoid.zernike(tel, thx, thy, wl * 1e-9, jmax=22, eps=EPS, nx=128)[4:23] * wl
 
-    fresh = np.empty((C.N_ZK, C.N_DOF))
-    for i in range(C.N_DOF):
-        d = np.zeros(C.N_DOF)
+    fresh = np.empty((layout.N_ZK, layout.N_DOF))
+    for i in range(layout.N_DOF):
+        d = np.zeros(layout.N_DOF)
         d[i] = STEPS[i]
         fresh[:, i] = (zk(d) - zk(-d)) / (2.0 * STEPS[i])
     rel = _relative(_evaluate(dz, field), fresh)

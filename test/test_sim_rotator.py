@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from test_rotation import STATE, _build, _camera_frame_zernikes_nm
 
-from cwfs_ros.core.estimator import estimate_wavefront
 from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.sim import (
     camera_zernikes_nm,
@@ -22,6 +21,7 @@ from cwfs_ros.sim import (
     true_zernikes_nm,
 )
 from cwfs_ros.sim.frames import StarSpec, render_frame
+from cwfs_ros.wfs.estimator import estimate_wavefront
 
 WL = 622.0
 

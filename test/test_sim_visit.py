@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cwfs_ros.core.control import load_dof_spec
+from cwfs_ros.ofc.control import load_dof_spec
 from cwfs_ros.sim import load_corner_geometry, perturbed_telescope
 from cwfs_ros.sim.perturbation import RIGID_SCALE, random_perturbation, true_error_of_state_nm
 from cwfs_ros.sim.visit import DonutSpec, FrameSpec, make_render_pool, render_frames, render_visit

@@ -13,7 +13,7 @@ stall was the same without it) but rclpy 7.1.6's
 MultiThreadedExecutor, which busy-loops holding the GIL while a callback waits in its pool
 (rclpy issue #1452): one ``publish`` by ofc_node took 1.5 s and this process's 0.1 s sleeps
 overran by up to 2.4 s.  The nodes and this test now spin on
-:class:`cwfs_ros.nodes.executor.MultiThreadedExecutor` (test_executor.py; figures in
+:class:`cwfs_ros.ros.executor.MultiThreadedExecutor` (test_executor.py; figures in
 bench/bench_executor.py).  Latency is a benchmark's figure (bench/bench_load.py).
 """
 
@@ -35,10 +35,10 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 
-from cwfs_ros.core import control as C  # noqa: E402
-from cwfs_ros.nodes.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.nodes.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.nodes.ofc_node import OfcNode  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
+from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 
 SEC = 1_000_000_000
 N = 20
@@ -51,7 +51,7 @@ SLOW_S = 0.5
 SLOW_NODE = """
 import sys, time, rclpy
 from cwfs_msgs.msg import DofCorrection
-from cwfs_ros.nodes.common import OUTPUT_QOS
+from cwfs_ros.ros.common import OUTPUT_QOS
 rclpy.init()
 node = rclpy.create_node("slow_consumer")
 log = open(sys.argv[1], "a", buffering=1)

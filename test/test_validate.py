@@ -77,8 +77,8 @@ def test_deflected_rays_match_a_mirror_perturbed_telescope() -> None:
 
 
 def test_linearity_slope_on_small_paraxial_steps() -> None:
-    from cwfs_ros.core import estimate_wavefront, load_instrument
     from cwfs_ros.sim.paraxial import render_paraxial_pair
+    from cwfs_ros.wfs import estimate_wavefront, load_instrument
 
     inst = load_instrument("paraxial")
     amps = np.array([100.0, 200.0, 300.0])
@@ -131,7 +131,7 @@ def test_cli_writes_the_report_and_exits_zero(tmp_path: Path) -> None:
 
 
 def test_cli_rejects_an_unknown_section(tmp_path: Path) -> None:
-    from cwfs_ros.cli import main
+    from cwfs_ros.cli.main import main
 
     assert main(["validate", "--only", "fig8", "--out", str(tmp_path)]) == 2
 

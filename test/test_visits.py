@@ -1,4 +1,4 @@
-"""Pairing of intra/extra images and assembly of the 76-vector (cwfs_ros.core.visits).
+"""Pairing of intra/extra images and assembly of the 76-vector (cwfs_ros.runtime.visits).
 
 Pure Python: the state machines are driven with explicit times, no middleware.
 """
@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cwfs_ros.core.visits import (
-    CORNERS,
-    NOLL,
+from cwfs_ros.layout import CORNERS, NOLL
+from cwfs_ros.runtime.visits import (
     CornerEntry,
     ImageRecord,
     PairingBuffer,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from galsim.zernike import Zernike, zernikeBasis
 
-from cwfs_ros.core.zernike import noll_to_nm, zernike_basis
+from cwfs_ros.wfs.zernike import noll_to_nm, zernike_basis
 
 EPS = 0.61
 

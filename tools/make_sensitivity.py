@@ -44,7 +44,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cwfs_ros.core import control as C  # noqa: E402
+from cwfs_ros import layout  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
 from cwfs_ros.sim import (  # noqa: E402
     DOF_NAMES,
     N_DOF,
@@ -65,7 +66,7 @@ OUT_NPY = REPO / "config" / "ofc" / C.BUNDLED_MATRIX_FILENAME
 OUT_NOTE = OUT_NPY.with_suffix(".md")
 
 # Double-Zernike fit (--dz): galsim.zernike.DoubleZernike conventions, as
-# cwfs_ros.core.control._eval_double_zernike evaluates ts_ofc's matrix.
+# cwfs_ros.ofc.control._eval_double_zernike evaluates ts_ofc's matrix.
 DZ_NPY = REPO / "config" / "ofc" / "sensitivity_dz_bundled.npy"
 DZ_NOTE = DZ_NPY.with_suffix(".md")
 DZ_FIELD_RADIUS_DEG = 1.75  # uv_outer (uv_inner 0)
@@ -84,7 +85,7 @@ DZ_NX = 64  # batoid.zernike pupil grid (the fit, not the grid, limits the accur
 
 def corner_fields() -> list[tuple[float, float]]:
     geo = load_corner_geometry()
-    return [geo[c].mid_field_deg for c in C.CORNER_NAMES]
+    return [geo[c].mid_field_deg for c in layout.CORNERS]
 
 
 def wavefront(dof: np.ndarray, fields: list[tuple[float, float]]) -> np.ndarray:
@@ -103,7 +104,7 @@ def column(i: int, h: float, fields: list[tuple[float, float]]) -> np.ndarray:
 
 def compute(verbose: bool = True) -> tuple[np.ndarray, np.ndarray]:
     fields = corner_fields()
-    a = np.zeros((C.N_MEAS, N_DOF))
+    a = np.zeros((layout.N_MEAS, N_DOF))
     nonlin = np.zeros(N_DOF)
     t0 = time.perf_counter()
     for i in range(N_DOF):
@@ -134,7 +135,7 @@ def write_note(a: np.ndarray, nonlin: np.ndarray, table: list[str]) -> None:
     import batoid
 
     fields = corner_fields()
-    fld = ", ".join(f"{c} ({x:+.4f}, {y:+.4f})" for c, (x, y) in zip(C.CORNER_NAMES, fields,
+    fld = ", ".join(f"{c} ({x:+.4f}, {y:+.4f})" for c, (x, y) in zip(layout.CORNERS, fields,
                                                                      strict=True))
     text = f"""# {OUT_NPY.name}: provenance
 
@@ -185,7 +186,7 @@ def dz_zernikes(dof: np.ndarray, fields: np.ndarray, nx: int = DZ_NX) -> np.ndar
     import batoid
 
     tel = perturbed_telescope(dof, BAND)
-    out = np.empty((fields.shape[0], C.N_ZK))
+    out = np.empty((fields.shape[0], layout.N_ZK))
     for k, (x, y) in enumerate(fields):
         zk = batoid.zernike(tel, np.deg2rad(x), np.deg2rad(y), WAVELENGTH_NM * 1e-9, jmax=22,
                             eps=DZ_EPS, nx=nx)
@@ -195,7 +196,7 @@ def dz_zernikes(dof: np.ndarray, fields: np.ndarray, nx: int = DZ_NX) -> np.ndar
 
 def dz_columns(fields: np.ndarray, nx: int = DZ_NX, verbose: bool = True) -> np.ndarray:
     """(n_fields, 19, 50) central finite differences [nm per DoF unit] at ``fields``."""
-    out = np.empty((fields.shape[0], C.N_ZK, N_DOF))
+    out = np.empty((fields.shape[0], layout.N_ZK, N_DOF))
     t0 = time.perf_counter()
     for i in range(N_DOF):
         d = np.zeros(N_DOF)
@@ -218,11 +219,11 @@ def fit_dz(fields: np.ndarray, values: np.ndarray, kmax: int = DZ_KMAX) -> np.nd
 
     basis = galsim.zernike.zernikeBasis(kmax, fields[:, 0], fields[:, 1],
                                         R_outer=DZ_FIELD_RADIUS_DEG)[1:]  # (kmax, n)
-    out = np.zeros((kmax + 1, C.NOLL_MAX + 1, N_DOF))
+    out = np.zeros((kmax + 1, layout.NOLL_MAX + 1, N_DOF))
     for d in range(N_DOF):
         w = 1.0 / np.maximum(np.linalg.norm(values[:, :, d], axis=1), 1e-12)
         coef, *_ = np.linalg.lstsq((basis * w).T, values[:, :, d] * w[:, None], rcond=None)
-        out[1:, C.NOLL_MIN:, d] = coef
+        out[1:, layout.NOLL_MIN:, d] = coef
     return out
 
 
@@ -230,13 +231,13 @@ def eval_dz(dz: np.ndarray, fields: np.ndarray) -> np.ndarray:
     """(n_fields, 19, 50) of a (k, 23, 50) double Zernike, with galsim.DoubleZernike."""
     import galsim
 
-    out = np.empty((fields.shape[0], C.N_ZK, N_DOF))
+    out = np.empty((fields.shape[0], layout.N_ZK, N_DOF))
     for d in range(N_DOF):
         dzd = galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0.0,
                                            uv_outer=DZ_FIELD_RADIUS_DEG,
                                            xy_inner=DZ_PUPIL_INNER_M, xy_outer=DZ_PUPIL_OUTER_M)
         for k, zk in enumerate(dzd(fields[:, 0], fields[:, 1])):
-            out[k, :, d] = np.asarray(zk.coef)[C.NOLL_MIN:C.NOLL_MAX + 1]
+            out[k, :, d] = np.asarray(zk.coef)[layout.NOLL_MIN:layout.NOLL_MAX + 1]
     return out
 
 
@@ -289,7 +290,7 @@ Made by `tools/make_sensitivity.py --dz` (this project) on {_dt.date.today().iso
   `cwfs_ros.sim.perturbed_telescope`'s default), telescope frame (unrotated camera).
 - **Evaluate** with `galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0, uv_outer=
   {DZ_FIELD_RADIUS_DEG}, xy_inner={DZ_PUPIL_INNER_M}, xy_outer={DZ_PUPIL_OUTER_M})` at field
-  points (deg, batoid field frame), as `cwfs_ros.core.control._eval_double_zernike` evaluates
+  points (deg, batoid field frame), as `cwfs_ros.ofc.control._eval_double_zernike` evaluates
   ts_ofc's matrix (`configurations/lsst.yaml` radii): its `.coef[4:23]` are nm per DoF unit.
 - **How:** central finite differences (half-steps as `sensitivity_bundled_r.npy`: M2 dz 10 µm,
   dx/dy 100 µm, rx/ry 0.005 deg; camera dz 10 µm, dx/dy 100 µm, rx/ry 0.01 deg; bending
@@ -356,4 +357,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from cwfs_ros.runtime.threads import limit_blas_threads
+
+    limit_blas_threads()  # one BLAS thread, as the cwfs-ros command sets it
     raise SystemExit(main())

@@ -6,9 +6,9 @@ Modules follow the paper (Xin et al. 2015) and the optics: :mod:`.zernike` (annu
 :mod:`.tie` (the two TIE solvers), :mod:`.estimator` (the algorithm), :mod:`.io` (files).
 """
 
-from .errors import ConfigError, CwfsError, ImageError
-from .estimator import WavefrontResult, estimate_wavefront
-from .instrument import Instrument, load_instrument
+from cwfs_ros.errors import ConfigError, CwfsError, ImageError
+from cwfs_ros.wfs.estimator import WavefrontResult, estimate_wavefront
+from cwfs_ros.wfs.instrument import Instrument, load_instrument
 
 __all__ = ["estimate_wavefront", "WavefrontResult", "Instrument", "load_instrument",
            "CwfsError", "ConfigError", "ImageError"]

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
+from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
 
 __all__ = ["MAX_UNCERTAINTY_NM", "Observability", "measurement_covariance", "observability"]
 
@@ -70,14 +70,14 @@ def measurement_covariance(
     sig = np.minimum(sig, MAX_UNCERTAINTY_NM)
     var = sig**2 + floor_nm**2
     blocks = []
-    for c in range(n_rows // C.N_ZK):
-        sl = slice(c * C.N_ZK, (c + 1) * C.N_ZK)
+    for c in range(n_rows // layout.N_ZK):
+        sl = slice(c * layout.N_ZK, (c + 1) * layout.N_ZK)
         if rows[sl].any():
             blocks.append(zrot @ np.diag(var[sl]) @ zrot.T)
-    m = C.N_ZK * len(blocks)
+    m = layout.N_ZK * len(blocks)
     cov = np.zeros((m, m))
     for k, b in enumerate(blocks):
-        cov[k * C.N_ZK:(k + 1) * C.N_ZK, k * C.N_ZK:(k + 1) * C.N_ZK] = b
+        cov[k * layout.N_ZK:(k + 1) * layout.N_ZK, k * layout.N_ZK:(k + 1) * layout.N_ZK] = b
     return cov
 
 

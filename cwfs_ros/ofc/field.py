@@ -19,8 +19,8 @@ from functools import lru_cache
 import numpy as np
 import yaml
 
-from cwfs_ros.core.errors import ConfigError
-from cwfs_ros.paths import config_dir
+from cwfs_ros.config import config_dir
+from cwfs_ros.errors import ConfigError
 
 __all__ = ["FIELD_RADIUS_DEG", "field_rms_nm", "gq_field_points_deg", "gq_weights"]
 

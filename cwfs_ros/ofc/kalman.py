@@ -42,11 +42,11 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
-
-from .estimation import Observability, measurement_covariance, observability
-from .model import ModelAtAngle, OpticalModel
+from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.ofc import control as C
+from cwfs_ros.ofc.estimation import Observability, measurement_covariance, observability
+from cwfs_ros.ofc.model import ModelAtAngle, OpticalModel
 
 __all__ = ["KALMAN_PARAM_RANGES", "KalmanOFC", "KalmanSettings"]
 
@@ -124,7 +124,7 @@ def _uncertainty_problem(uncertainty_nm: np.ndarray | Sequence[float] | None,
         return f"bad_uncertainty: {u.size} uncertainties for {rows.size} Zernike terms"
     bad = rows & ~(np.isfinite(u) & (u >= 0))
     if bad.any():
-        names = sorted({C.CORNER_NAMES[i // C.N_ZK] for i in np.flatnonzero(bad)})
+        names = sorted({layout.CORNERS[i // layout.N_ZK] for i in np.flatnonzero(bad)})
         return (f"bad_uncertainty: uncertainty_nm of {', '.join(names)} holds NaN, inf or "
                 f"negative values ({int(bad.sum())} terms); 0 means not reported")
     return None
@@ -154,7 +154,7 @@ class KalmanOFC(C.OFCSolver):
     def reset(self) -> None:
         """Back to the prior: ``x = 0 ± σ0``, nothing accumulated, no stamp."""
         super().reset()
-        self.x = np.zeros(C.N_DOF)
+        self.x = np.zeros(layout.N_DOF)
         self.P = np.diag(self.prior_sigma**2)
 
     def state(self) -> dict:
@@ -224,7 +224,7 @@ class KalmanOFC(C.OFCSolver):
         if np.all(u >= lo) and np.all(u <= hi):
             return u
         m = self.dof_mask
-        wf = np.repeat(np.sqrt(at.field_weights), C.N_ZK)[:, None] * at.F[:, m]
+        wf = np.repeat(np.sqrt(at.field_weights), layout.N_ZK)[:, None] * at.F[:, m]
         reg = np.diag(self.settings.field_regularization_nm / self.prior_sigma[m])
         A = np.vstack([wf, reg])
         b = -A @ target
@@ -234,7 +234,7 @@ class KalmanOFC(C.OFCSolver):
 
     def _field_rms(self, F: np.ndarray, weights: np.ndarray, x: np.ndarray) -> float:
         w = F[:, self.dof_mask] @ x
-        return float(np.sqrt(np.sum(weights * np.sum(w.reshape(-1, C.N_ZK) ** 2, axis=1))))
+        return float(np.sqrt(np.sum(weights * np.sum(w.reshape(-1, layout.N_ZK) ** 2, axis=1))))
 
     # ---------------------------------------------------------------- step
     def step(self, measured_nm: np.ndarray | Sequence[float],  # type: ignore[override]
@@ -325,13 +325,13 @@ class KalmanOFC(C.OFCSolver):
                 u_m: np.ndarray, corners: tuple[bool, ...], stamp_ns: int | None,
                 dry_run: bool, t0: float) -> C.OFCResult:
         m = self.dof_mask
-        u = np.zeros(C.N_DOF)
+        u = np.zeros(layout.N_DOF)
         u[m] = u_m
         lo, hi = self._bounds()
-        clipped = np.zeros(C.N_DOF, dtype=bool)
+        clipped = np.zeros(layout.N_DOF, dtype=bool)
         clipped[m] = (np.abs(u_m - lo) < 1e-12 * (1 + np.abs(lo))) | \
             (np.abs(u_m - hi) < 1e-12 * (1 + np.abs(hi)))
-        sigma = np.zeros(C.N_DOF)
+        sigma = np.zeros(layout.N_DOF)
         sigma[m] = np.sqrt(np.clip(np.diag(upd.P), 0.0, None))
         n_used = sum(corners)
         H = at.H[np.ix_(rows, m)]
@@ -370,7 +370,7 @@ class KalmanOFC(C.OFCSolver):
             self.last_stamp_ns = int(stamp_ns)
 
     def _full(self, x_m: np.ndarray) -> np.ndarray:
-        out = np.zeros(C.N_DOF)
+        out = np.zeros(layout.N_DOF)
         out[self.dof_mask] = x_m
         return out
 
@@ -392,9 +392,9 @@ class KalmanOFC(C.OFCSolver):
     def _refused(self, status: str, corners: tuple[bool, ...], t0: float,
                  angle_deg: float) -> C.OFCResult:
         sigma = np.sqrt(np.clip(np.diag(self.P), 0.0, None)) * self.dof_mask
-        return C.OFCResult(np.zeros(C.N_DOF), self.dof_total.copy(), False, status,
-                           float("nan"), float("nan"), 0, np.zeros(C.N_DOF),
-                           np.zeros(C.N_DOF, dtype=bool), float("nan"), corners,
+        return C.OFCResult(np.zeros(layout.N_DOF), self.dof_total.copy(), False, status,
+                           float("nan"), float("nan"), 0, np.zeros(layout.N_DOF),
+                           np.zeros(layout.N_DOF, dtype=bool), float("nan"), corners,
                            time.perf_counter() - t0, sigma,
                            rotator_angle_deg=float(angle_deg) if np.isfinite(angle_deg)
                            else float("nan"))
@@ -403,7 +403,7 @@ class KalmanOFC(C.OFCSolver):
                              corner_valid: Sequence[bool] | None = None) -> Observability:
         """Which directions the default measurement noise lets one visit see (no state change)."""
         at = self.model.at(angle_deg)
-        cv = np.ones(C.N_CORNERS, bool) if corner_valid is None else np.asarray(corner_valid)
+        cv = np.ones(layout.N_CORNERS, bool) if corner_valid is None else np.asarray(corner_valid)
         rows = self.sensitivity.rows_for(cv)
         cov = measurement_covariance(None, rows, at.zrot,
                                      default_nm=self.settings.default_uncertainty_nm,

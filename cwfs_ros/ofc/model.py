@@ -29,11 +29,11 @@ from functools import lru_cache
 import galsim
 import numpy as np
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
-
-from . import rotation
-from .field import gq_field_points_deg, gq_weights
+from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.ofc import control as C
+from cwfs_ros.ofc import rotation
+from cwfs_ros.ofc.field import gq_field_points_deg, gq_weights
 
 __all__ = ["BUNDLED_DZ_FILENAME", "ModelAtAngle", "OpticalModel", "double_zernike_at"]
 
@@ -67,14 +67,14 @@ class ModelAtAngle:
 
     def to_telescope(self, y_cam: np.ndarray) -> np.ndarray:
         """(76,) camera-frame corner Zernikes -> telescope frame."""
-        return (y_cam.reshape(-1, C.N_ZK) @ self.zrot.T).reshape(-1)
+        return (y_cam.reshape(-1, layout.N_ZK) @ self.zrot.T).reshape(-1)
 
 
 def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray) -> np.ndarray:
     """Pupil Z4..Z22 per DoF at field points: (n, 19, n_dof) from a (k, j, n_dof) double Zernike.
 
     Same convention as galsim's ``DoubleZernike`` with the field annulus of ts_ofc's
-    ``configurations/lsst.yaml`` (which :func:`cwfs_ros.core.control._eval_double_zernike`
+    ``configurations/lsst.yaml`` (which :func:`cwfs_ros.ofc.control._eval_double_zernike`
     uses): the value is ``sum_k Z_k(field) dz[k, j]``.
     """
     cfg = C.load_optics_config()
@@ -82,7 +82,7 @@ def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray) -> np.ndarray:
     basis = galsim.zernike.zernikeBasis(dz.shape[0] - 1, f[:, 0], f[:, 1],
                                         R_outer=cfg.field_outer_deg,
                                         R_inner=cfg.field_inner_deg)  # (k, n)
-    pupil = dz[:, C.NOLL_MIN:C.NOLL_MAX + 1, :]  # (k, 19, d)
+    pupil = dz[:, layout.NOLL_MIN:layout.NOLL_MAX + 1, :]  # (k, 19, d)
     return np.einsum("kn,kjd->njd", basis, pupil)
 
 
@@ -102,7 +102,7 @@ def _dz_nm(source: str) -> np.ndarray:
         dz = np.load(path)
     else:
         raise ConfigError(f"matrix_source must be one of {C.MATRIX_SOURCES}, got {source!r}")
-    if dz.ndim != 3 or dz.shape[1] <= C.NOLL_MAX or dz.shape[2] != C.N_DOF:
+    if dz.ndim != 3 or dz.shape[1] <= layout.NOLL_MAX or dz.shape[2] != layout.N_DOF:
         raise ConfigError(f"{source} double Zernike must be (k, >22, 50), got {dz.shape}")
     dz = np.ascontiguousarray(dz, dtype=np.float64)
     dz.setflags(write=False)
@@ -112,7 +112,7 @@ def _dz_nm(source: str) -> np.ndarray:
 @lru_cache(maxsize=8)
 def _intrinsic_dz_nm(band: str) -> np.ndarray:
     """(k, j, 1) double Zernike of the design wavefront of ``band`` in nm (ts_ofc's intrinsic
-    yaml, as :func:`cwfs_ros.core.control.intrinsic_zernikes_nm` reads it)."""
+    yaml, as :func:`cwfs_ros.ofc.control.intrinsic_zernikes_nm` reads it)."""
     tag = "" if band == "ref" else band
     path = C.ofc_config_dir() / C._INTRINSIC_DIR / f"intrinsic_zk_{tag}_31_29.yaml"  # noqa: SLF001
     coef = C._yaml_array(path, 2) * C.band_wavelength_um(band) * 1000.0  # noqa: SLF001
@@ -152,7 +152,7 @@ class OpticalModel:
         self.field_source = source if (source == "ts_ofc" or _bundled_dz_available()) \
             else "ts_ofc"
         gq = gq_field_points_deg()
-        self._F_tel = double_zernike_at(_dz_nm(self.field_source), gq).reshape(-1, C.N_DOF)
+        self._F_tel = double_zernike_at(_dz_nm(self.field_source), gq).reshape(-1, layout.N_DOF)
         self._F_tel.setflags(write=False)
         self._weights = gq_weights()
         self._at = lru_cache(maxsize=cache_size)(self._build)
@@ -170,7 +170,7 @@ class OpticalModel:
     def _corner_matrix(self, fields_tel: np.ndarray, angle_deg: float) -> np.ndarray:
         if angle_deg == 0 and self.source == "bundled":
             return C.sensitivity_for_source("bundled").matrix_nm
-        return double_zernike_at(_dz_nm(self.field_source), fields_tel).reshape(-1, C.N_DOF)
+        return double_zernike_at(_dz_nm(self.field_source), fields_tel).reshape(-1, layout.N_DOF)
 
     def _build(self, angle_deg: float) -> ModelAtAngle:
         theta = np.deg2rad(angle_deg)

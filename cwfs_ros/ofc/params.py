@@ -7,11 +7,11 @@ from typing import Any
 
 import numpy as np
 
-from cwfs_ros.core import control as C
-from cwfs_ros.core.errors import ConfigError
-
-from .kalman import KALMAN_PARAM_RANGES, KalmanOFC, KalmanSettings
-from .model import OpticalModel
+from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.ofc import control as C
+from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC, KalmanSettings
+from cwfs_ros.ofc.model import OpticalModel
 
 __all__ = ["CONTROLLERS", "PID_MAX_ANGLE_DEG", "controller_from_params", "refusal",
            "restore_record", "rotator_angle_for", "state_record", "step_controller"]
@@ -26,7 +26,7 @@ PID_MAX_ANGLE_DEG = 0.01
 def controller_from_params(get: Callable[[str], Any]) -> C.OFCSolver:
     """The controller of ofc_node's parameter values ``get(name) -> value``.
 
-    ``controller: pid`` is :func:`cwfs_ros.core.control.solver_from_params`. ``kalman`` takes
+    ``controller: pid`` is :func:`cwfs_ros.ofc.control.solver_from_params`. ``kalman`` takes
     the same checks, masks and limits plus the :class:`KalmanSettings` parameters and
     ``angle_bin_deg``. Raises ConfigError naming the problem.
     """
@@ -82,7 +82,7 @@ def _array(rec: dict[str, Any], key: str, shape: tuple[int, ...],
 def _covariance(rec: dict[str, Any], rng: np.ndarray) -> np.ndarray:
     """The filter covariance of a record: symmetric, positive semi-definite, each variance
     within (10 strokes)²."""
-    P = _array(rec, "P", (C.N_DOF, C.N_DOF))
+    P = _array(rec, "P", (layout.N_DOF, layout.N_DOF))
     scale = float(np.max(np.abs(P))) or 1.0
     if np.max(np.abs(P - P.T)) > 1e-9 * scale:
         raise ConfigError("controller state: P is not symmetric")
@@ -114,21 +114,21 @@ def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
     if kind not in CONTROLLERS:
         raise ConfigError(f"controller state: controller must be one of {CONTROLLERS}, "
                           f"got {kind!r}")
-    dof_total = _array(rec, "dof_total", (C.N_DOF,), rng * (1 + 1e-9) if
+    dof_total = _array(rec, "dof_total", (layout.N_DOF,), rng * (1 + 1e-9) if
                        ctl.clip_range is not None else lim)
     last = rec.get("last_stamp_ns")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 0):
         raise ConfigError(f"controller state: last_stamp_ns must be an integer, got {last!r}")
     n_steps = _count(rec, "n_steps")
     if isinstance(ctl, KalmanOFC) and kind == "kalman":
-        ctl.restore({"dof_total": dof_total, "x": _array(rec, "x", (C.N_DOF,), lim),
+        ctl.restore({"dof_total": dof_total, "x": _array(rec, "x", (layout.N_DOF,), lim),
                      "P": _covariance(rec, rng), "n_steps": n_steps, "last_stamp_ns": last})
         return f"kalman state of {n_steps} visit(s)"
     if not isinstance(ctl, KalmanOFC) and kind == "pid":
         ki = rec.get("ki", ctl.ki)
         if isinstance(ki, bool) or not isinstance(ki, (int, float)) or not 0 <= ki <= 1:
             raise ConfigError(f"controller state: ki must be in [0, 1], got {ki!r}")
-        ctl.restore((dof_total, _array(rec, "integral", (C.N_DOF,), lim), n_steps, last,
+        ctl.restore((dof_total, _array(rec, "integral", (layout.N_DOF,), lim), n_steps, last,
                      float(ki)))
         return f"pid state of {n_steps} visit(s)"
     ctl.reset()
@@ -138,7 +138,7 @@ def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
 
 def refusal(ctl: C.OFCSolver, status: str) -> C.OFCResult:
     """A refused visit: no correction, the controller's state as it is."""
-    return C.OFCResult(np.zeros(C.N_DOF), ctl.dof_total.copy(), False, status, float("nan"),
+    return C.OFCResult(np.zeros(layout.N_DOF), ctl.dof_total.copy(), False, status, float("nan"),
                        float("nan"), 0)
 
 

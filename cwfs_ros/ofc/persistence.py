@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from cwfs_ros.core.errors import ConfigError
+from cwfs_ros.errors import ConfigError
 
 __all__ = ["STATE_VERSION", "load_state", "save_state"]
 

@@ -3,7 +3,7 @@
 A corner sensor measures the total wavefront: the design (intrinsic) wavefront of the band at
 the corner, plus what the telescope's 50 degrees of freedom add. Within the DoF strokes
 (``config/ofc/dof.yaml`` ``range``), the sensitivity matrix ``A`` (nm per DoF unit at the four
-corners, :func:`cwfs_ros.core.control.sensitivity_for_source`) bounds what the DoF can add to
+corners, :func:`cwfs_ros.ofc.control.sensitivity_for_source`) bounds what the DoF can add to
 term ``i``: the largest of ``|A_i . x|`` over the box ``|x_j| <= range_j`` is
 ``sum_j |A_ij| range_j`` (a linear function's maximum over a box is at a vertex).  Each term
 is then bounded by
@@ -33,12 +33,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cwfs_ros.core import control as C
+from cwfs_ros import layout
+from cwfs_ros.layout import CORNERS, N_ZK
+from cwfs_ros.ofc import control as C
 
 __all__ = ["PlausibilityBounds", "Verdict", "VisitGuard", "check_vector", "physical_bounds"]
 
-N_ZK = C.N_ZK
-CORNERS = ("R00", "R04", "R40", "R44")
 
 
 @dataclass(frozen=True)
@@ -99,10 +99,10 @@ def _rotation_invariant(bound: np.ndarray) -> np.ndarray:
     The corners report Zernikes in the camera frame, which the rotator turns: a rotation
     mixes the two terms of an azimuthal pair, so each can reach the pair's norm.
     """
-    from .rotation import noll_to_nm
+    from cwfs_ros.ofc.rotation import noll_to_nm
 
     out = np.asarray(bound, dtype=np.float64).reshape(-1, N_ZK).copy()
-    js = list(range(C.NOLL_MIN, C.NOLL_MAX + 1))
+    js = list(range(layout.NOLL_MIN, layout.NOLL_MAX + 1))
     for i, j in enumerate(js):
         n, m = noll_to_nm(j)
         if m > 0:  # its partner has the same n and -m

@@ -46,6 +46,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from cwfs_ros.layout import N_DOF
+
 __all__ = [
     "CAMERA_FRAME_DOF",
     "dof_rotation_matrix",
@@ -55,7 +57,6 @@ __all__ = [
     "zernike_rotation_matrix",
 ]
 
-N_DOF = 50
 #: DoF that live in the camera frame: the camera hexapod's rx, ry (8, 9).
 CAMERA_FRAME_DOF: tuple[int, int] = (8, 9)
 

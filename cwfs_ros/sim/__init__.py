@@ -10,7 +10,7 @@ not by a pupil-to-image mapping, so closed-loop tests are not an inverse crime.
   corner-sensor geometry.
 """
 
-from .render import (
+from cwfs_ros.sim.render import (
     CornerSensor,
     TracedRays,
     camera_zernikes_nm,
@@ -22,7 +22,7 @@ from .render import (
     trace_pupil_rays,
     true_zernikes_nm,
 )
-from .telescope import (
+from cwfs_ros.sim.telescope import (
     BANDS,
     CONVENTIONS,
     DOF_NAMES,

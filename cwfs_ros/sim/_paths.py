@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..paths import config_dir as _config_dir
+from cwfs_ros.config import config_dir as _config_dir
 
 __all__ = ["config_dir", "sim_data_dir"]
 
 
 def config_dir() -> Path:
-    """The package's ``config/`` directory (see :func:`cwfs_ros.paths.config_dir`)."""
+    """The package's ``config/`` directory (see :func:`cwfs_ros.config.config_dir`)."""
     return _config_dir()
 
 

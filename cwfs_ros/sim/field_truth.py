@@ -25,8 +25,9 @@ from functools import lru_cache
 import batoid
 import numpy as np
 
-from ..ofc.field import field_rms_nm, gq_field_points_deg, gq_weights
-from .telescope import load_lsst
+from cwfs_ros.layout import NOLL as _NOLL
+from cwfs_ros.ofc.field import field_rms_nm, gq_field_points_deg, gq_weights
+from cwfs_ros.sim.telescope import load_lsst
 
 __all__ = [
     "FWHM_PER_SIGMA",
@@ -42,7 +43,6 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))  # 2.3548: Gaussian FWHM / sig
 EPS = 0.61  # the annular obscuration of the project's Zernikes (true_zernikes_nm)
 FIELD_NX = 64
 _RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
-_NOLL = range(4, 23)
 
 
 @dataclass(frozen=True)
@@ -149,8 +149,8 @@ def field_truth(telescope: batoid.Optic, band: str, *, wavelength_nm: float,
 if __name__ == "__main__":  # per-state cost, printed (no assertion)
     import time
 
-    from .perturbation import random_perturbation
-    from .telescope import perturbed_telescope
+    from cwfs_ros.sim.perturbation import random_perturbation
+    from cwfs_ros.sim.telescope import perturbed_telescope
 
     design_field_zernikes_nm("r", 622.0)
     for kind in ("rigid", "bending", "mixed"):

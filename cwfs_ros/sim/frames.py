@@ -9,7 +9,7 @@ includes a blended pair, a too-faint star, a star cut by the frame edge, a satur
 Truth: the list of injected stars (pixel position of the chief ray, field angle, flux, flags).
 Field angles are found by tracing chief rays through the *nominal* defocused design
 (:func:`star_field_deg`: Newton iterations on the traced landing point), independently of
-the estimator's own pixel-to-field model (:mod:`cwfs_ros.core.field_position`).  A star is
+the estimator's own pixel-to-field model (:mod:`cwfs_ros.frames.field_position`).  A star is
 placed at the pixel where the nominal design images its chief ray, with the perturbed
 telescope's donut drawn around that point (``centre="chief"``): the frame is taken as
 astrometrically registered, so perturbation-induced pointing shifts do not move stars.
@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 import batoid
 import numpy as np
 
-from .render import render_donut
-from .telescope import defocused, load_lsst, perturbed_telescope
+from cwfs_ros.sim.render import render_donut
+from cwfs_ros.sim.telescope import defocused, load_lsst, perturbed_telescope
 
 __all__ = ["StarSpec", "InjectedStar", "SimulatedFrame", "star_field_deg", "random_stars",
            "render_frame", "donut_outer_radius_px"]
@@ -246,7 +246,7 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     design = load_lsst(band)
     ref_field = field_ref_deg
     if rotator_angle_deg:
-        from ..ofc.rotation import telescope_field_deg
+        from cwfs_ros.ofc.rotation import telescope_field_deg
 
         design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
         g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]

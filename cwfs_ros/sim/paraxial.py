@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 from galsim.zernike import Zernike
 
-from ..core.instrument import Instrument
-from .sampling import annulus_samples
+from cwfs_ros.sim.sampling import annulus_samples
+from cwfs_ros.wfs.instrument import Instrument
 
 __all__ = ["render_paraxial_pair"]
 

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..core.visits import CORNERS, N_ZK
+from cwfs_ros.layout import CORNERS, N_DOF, N_ZK
 
 __all__ = [
     "BENDING_FRACTION",
@@ -29,7 +29,6 @@ __all__ = [
     "wavefront_error_nm",
 ]
 
-N_DOF = 50
 
 
 def wavefront_error_nm(zernikes_nm: Sequence[float] | np.ndarray,
@@ -63,9 +62,9 @@ def rigid_perturbation(seed: int, scale: float = 1.0) -> np.ndarray:
 def true_error_of_state_nm(dof: np.ndarray, band: str = "r") -> float:
     """The figure of merit of a telescope state, from the simulator's truth (r-band 622 nm
     unless ``band`` says otherwise)."""
-    from ..core.instrument import load_instrument
-    from .render import load_corner_geometry, true_zernikes_nm
-    from .telescope import perturbed_telescope
+    from cwfs_ros.sim.render import load_corner_geometry, true_zernikes_nm
+    from cwfs_ros.sim.telescope import perturbed_telescope
+    from cwfs_ros.wfs.instrument import load_instrument
 
     wl = float(load_instrument("lsst").wavelength_nm(band))
     geometry = load_corner_geometry()
@@ -98,7 +97,7 @@ def random_perturbation(kind: str, seed: int, target_nm: float | None = None,
     if kind in ("rigid", "mixed"):
         dof[:10] = rng.normal(0.0, 1.0, 10) * RIGID_SCALE
     if kind in ("bending", "mixed"):
-        from ..core.control import load_dof_spec
+        from cwfs_ros.ofc.control import load_dof_spec
 
         dof[10:] = rng.normal(0.0, 1.0, 40) * 0.3 * load_dof_spec().range[10:]
     return dof if target_nm is None else scale_to_error(dof, target_nm, band)
@@ -155,7 +154,7 @@ def stroke_perturbation(kind: str, seed: int, target_nm: float | None = None,
             dof[base + 1:base + 3] = _disk_draw(rng, DECENTRE_STROKE_UM)
             dof[base + 3:base + 5] = _disk_draw(rng, tilt_deg)
     if kind in ("bending", "mixed"):
-        from ..core.control import load_dof_spec
+        from cwfs_ros.ofc.control import load_dof_spec
 
         dof[10:] = (rng.uniform(-1.0, 1.0, 40) * BENDING_FRACTION
                     * load_dof_spec().range[10:])
@@ -168,7 +167,7 @@ def stroke_usage(dof: np.ndarray) -> dict[str, float]:
     Keys: ``decentre``, ``tilt``, ``piston`` (worst of the two hexapods) and ``bending``
     (worst mode, as a fraction of :data:`BENDING_FRACTION` x range).
     """
-    from ..core.control import load_dof_spec
+    from cwfs_ros.ofc.control import load_dof_spec
 
     d = np.asarray(dof, dtype=np.float64)
     hexapods = (d[0:5], d[5:10])

@@ -39,10 +39,10 @@ import batoid
 import numpy as np
 import yaml
 
-from ..core.blur import FWHM_PER_SIGMA
-from ._paths import config_dir
-from .sampling import annulus_samples
-from .telescope import defocused
+from cwfs_ros.sim._paths import config_dir
+from cwfs_ros.sim.sampling import annulus_samples
+from cwfs_ros.sim.telescope import defocused
+from cwfs_ros.wfs.blur import FWHM_PER_SIGMA
 
 __all__ = [
     "CornerSensor",
@@ -434,7 +434,7 @@ def camera_zernikes_nm(
     (``zernike_rotation_matrix(angle).T``; :mod:`cwfs_ros.ofc.rotation`). At angle 0 it is
     :func:`true_zernikes_nm` at ``f``.
     """
-    from ..ofc.rotation import telescope_field_deg, zernike_rotation_matrix
+    from cwfs_ros.ofc.rotation import telescope_field_deg, zernike_rotation_matrix
 
     a = np.deg2rad(float(rotator_angle_deg))
     g = telescope_field_deg(field_camera_deg, a)[0]

@@ -63,7 +63,8 @@ import numpy as np
 import yaml
 from astropy.io import fits
 
-from ._paths import sim_data_dir
+from cwfs_ros.layout import DOF_NAMES, DOF_UNITS, N_DOF
+from cwfs_ros.sim._paths import sim_data_dir
 
 __all__ = [
     "BANDS",
@@ -78,17 +79,8 @@ __all__ = [
     "perturbed_telescope",
 ]
 
-N_DOF = 50
 BANDS = ("u", "g", "r", "i", "z", "y")
 
-_RIGID = ("dz", "dx", "dy", "rx", "ry")
-DOF_NAMES: tuple[str, ...] = (
-    *(f"M2_{n}" for n in _RIGID),
-    *(f"Cam_{n}" for n in _RIGID),
-    *(f"M1M3_B{k}" for k in range(1, 21)),
-    *(f"M2_B{k}" for k in range(1, 21)),
-)
-DOF_UNITS: tuple[str, ...] = ("um", "um", "um", "deg", "deg") * 2 + ("um",) * 40
 
 # DoF whose sign differs between ts_ofc and batoid_rubin's LSSTBuilder (dz, dx, rx of M2 and
 # of the camera); see "Sign convention vs ts_ofc" above.

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import batoid
 import numpy as np
 
-from .render import render_donut
+from cwfs_ros.sim.render import render_donut
 
 __all__ = ["DonutSpec", "FrameSpec", "make_render_pool", "render_frames", "render_visit"]
 
@@ -137,7 +137,7 @@ class FrameSpec:
 
 def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelength_nm: float,
                   sky_per_pixel: float, read_noise_e: float, seeing_fwhm_arcsec: float):
-    from .frames import random_stars, render_frame
+    from cwfs_ros.sim.frames import random_stars, render_frame
 
     rng = np.random.default_rng(spec.seed)
     stars = random_stars(rng, spec.shape_px, n_good=spec.n_stars, flux_range=spec.flux_range,

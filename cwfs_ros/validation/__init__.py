@@ -10,5 +10,5 @@ The computations live in small modules, one concern each:
 * :mod:`.beyond`: the photon-noise floor and the optical-feedback solver's recovery.
 * :mod:`.plots`: the figures (matplotlib on an Agg canvas, no pyplot state).
 
-The entry point (argument parsing, report writing) is :mod:`cwfs_ros.validate`.
+The entry point (argument parsing, report writing) is :mod:`cwfs_ros.cli.validate`.
 """

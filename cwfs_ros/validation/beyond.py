@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from .common import EPS, SPLIT, Verdict, wfe
-from .paper import Options, _estimate, _lsst_pair
+from cwfs_ros.validation.common import EPS, SPLIT, Verdict, wfe
+from cwfs_ros.validation.paper import Options, estimate_pair, lsst_pair
 
 __all__ = ["noise_floor", "solver_recovery"]
 
@@ -53,8 +53,8 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
     noise, at no ray-tracing cost per trial.  The truth is ``true_zernikes_nm`` at the
     mid-point field.  The check: the noise part (spread over seeds) falls as N^-1/2.
     """
-    from ..sim.render import load_corner_geometry, render_donut, true_zernikes_nm
-    from ..sim.telescope import load_lsst
+    from cwfs_ros.sim.render import load_corner_geometry, render_donut, true_zernikes_nm
+    from cwfs_ros.sim.telescope import load_lsst
 
     c = load_corner_geometry()["R44"]
     tel = load_lsst("r")
@@ -74,7 +74,7 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
         for s in range(opts.noise_seeds):
             imgs = [rng.poisson(p * n + sky).astype(float) - sky for p in probs]
             try:
-                r = _estimate(*imgs, fi, fe, band="r", wavelength_nm=wl,
+                r = estimate_pair(*imgs, fi, fe, band="r", wavelength_nm=wl,
                               defocal_offset_mm=SPLIT.defocus_mm)
                 if not r.caustic:
                     errs[a, s] = r.zernikes_nm - truth
@@ -127,10 +127,10 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
     SVD in ts_ofc's normalised units) is taken off the state, and the remaining wavefront
     error measured on the simulator.  ``observability`` lists the blind combinations.
     """
-    from ..core.control import OFCSolver, observability, sensitivity_for_source
-    from ..sim.perturbation import random_perturbation, true_error_of_state_nm
-    from ..sim.render import load_corner_geometry, true_zernikes_nm
-    from ..sim.telescope import DOF_NAMES, perturbed_telescope
+    from cwfs_ros.ofc.control import OFCSolver, observability, sensitivity_for_source
+    from cwfs_ros.sim.perturbation import random_perturbation, true_error_of_state_nm
+    from cwfs_ros.sim.render import load_corner_geometry, true_zernikes_nm
+    from cwfs_ros.sim.telescope import DOF_NAMES, perturbed_telescope
 
     t0 = time.perf_counter()
     wl = 622.0
@@ -149,9 +149,9 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
         rng = np.random.default_rng(opts.seed + 13)
         est = []
         for c in corners.values():
-            intra, extra = _lsst_pair(tel, c.intra_field_deg, c.extra_field_deg, SPLIT, wl,
+            intra, extra = lsst_pair(tel, c.intra_field_deg, c.extra_field_deg, SPLIT, wl,
                                       opts.solver_photons, rng)
-            r = _estimate(intra, extra, c.intra_field_deg, c.extra_field_deg, band="r",
+            r = estimate_pair(intra, extra, c.intra_field_deg, c.extra_field_deg, band="r",
                           wavelength_nm=wl, defocal_offset_mm=SPLIT.defocus_mm)
             est.append(r.zernikes_nm)
         inputs["estimated (split pairs)"] = np.concatenate(est)

@@ -12,11 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from cwfs_ros.layout import NOLL as _NOLL
+
 __all__ = ["Verdict", "SensorSetup", "PAPER", "SPLIT", "R_PUPIL_M", "EPS", "NOLL",
            "inject_m1_zernike", "render_deflected", "trace_deflected", "fold_fraction", "rms",
            "wfe"]
 
-NOLL = np.arange(4, 23)  # the published product, Z4..Z22
+NOLL = np.asarray(_NOLL)  # the published product, Z4..Z22
 R_PUPIL_M = 4.18  # LSST entrance-pupil radius (batoid's pupilSize / 2)
 # Obscuration of the annular Zernikes: 0.61 as the paper's parameter file (lsst.param) and
 # the package's instruments; batoid's model is 0.612 (paper §3.1: "LSST-like 60%").
@@ -58,7 +60,7 @@ class SensorSetup:
         """(intra, extra, mid) field points: the paper's field, or the corner's halves."""
         if self.name == "paper" or corner is None:
             return paper_field, paper_field, paper_field
-        from ..sim.render import load_corner_geometry
+        from cwfs_ros.sim.render import load_corner_geometry
 
         c = load_corner_geometry()[corner]
         return c.intra_field_deg, c.extra_field_deg, c.mid_field_deg
@@ -79,7 +81,7 @@ def wfe(e: np.ndarray) -> float:
 
 
 def _full_zernikes_nm(tel: Any, field_deg: tuple[float, float], wl_nm: float) -> np.ndarray:
-    from ..sim.render import true_zernikes_nm
+    from cwfs_ros.sim.render import true_zernikes_nm
 
     return true_zernikes_nm(tel, field_deg, wavelength_nm=wl_nm, eps=EPS)
 
@@ -136,8 +138,8 @@ def trace_deflected(tel: Any, field_deg: tuple[float, float], detector_offset_mm
     """
     import batoid
 
-    from ..sim.sampling import annulus_samples
-    from ..sim.telescope import defocused
+    from cwfs_ros.sim.sampling import annulus_samples
+    from cwfs_ros.sim.telescope import defocused
 
     optic = defocused(tel, detector_offset_mm)
     wl = wavelength_nm * 1e-9
@@ -206,7 +208,7 @@ def fold_fraction(tel: Any, field_deg: tuple[float, float], detector_offset_mm: 
     """
     import batoid
 
-    from ..sim.telescope import defocused
+    from cwfs_ros.sim.telescope import defocused
 
     optic = defocused(tel, detector_offset_mm)
     g = np.linspace(-1.0, 1.0, n_grid) * R_PUPIL_M

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cwfs_ros.core import control as C
+from cwfs_ros import layout
+from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.field import field_rms_nm, gq_field_points_deg
 from cwfs_ros.sim.render import camera_zernikes_nm, true_zernikes_nm
 from cwfs_ros.sim.telescope import perturbed_telescope
@@ -36,7 +37,7 @@ class TruthModel:
         self.nx = nx
         self.corners_deg = C.corner_mid_field_points_deg()
         self.gq_deg = gq_field_points_deg()
-        nominal = perturbed_telescope(np.zeros(C.N_DOF), band)
+        nominal = perturbed_telescope(np.zeros(layout.N_DOF), band)
         self._design_field = self._zk(nominal, self.gq_deg)
 
     def _zk(self, tel, fields: np.ndarray) -> np.ndarray:
@@ -53,7 +54,8 @@ class TruthModel:
         reads its camera-frame Zernikes (:func:`cwfs_ros.sim.render.camera_zernikes_nm`).
         """
         tel = perturbed_telescope(dof, self.band, rotator_angle_deg=angle_deg)
-        nominal = perturbed_telescope(np.zeros(C.N_DOF), self.band, rotator_angle_deg=angle_deg)
+        nominal = perturbed_telescope(np.zeros(layout.N_DOF), self.band,
+                                      rotator_angle_deg=angle_deg)
         z, z0 = (np.array([camera_zernikes_nm(t, (float(f[0]), float(f[1])), angle_deg,
                                               wavelength_nm=self.wavelength_nm, nx=self.nx)
                            for f in self.corners_deg]) for t in (tel, nominal))
@@ -94,11 +96,11 @@ def run_model_loop(controller: C.OFCSolver, initial_dof: np.ndarray, visits: int
     rng = np.random.default_rng(seed)
     dof = np.asarray(initial_dof, dtype=np.float64).copy()
     trace = LoopTrace()
-    unc = np.full(C.N_MEAS, noise_nm)
+    unc = np.full(layout.N_MEAS, noise_nm)
     for k in range(visits):
         total, departure = truth.corners_nm(dof, angle_deg)
         trace.corner_nm.append(float(np.mean(np.linalg.norm(
-            departure.reshape(C.N_CORNERS, C.N_ZK), axis=1))))
+            departure.reshape(layout.N_CORNERS, layout.N_ZK), axis=1))))
         trace.field_nm.append(truth.field_error_nm(dof, angle_deg))
         trace.states.append(dof.copy())
         measured = total + rng.normal(0.0, noise_nm, total.size)

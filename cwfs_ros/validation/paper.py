@@ -13,10 +13,20 @@ from typing import Any
 
 import numpy as np
 
-from .common import EPS, NOLL, PAPER, R_PUPIL_M, SPLIT, SensorSetup, Verdict, rms, wfe
+from cwfs_ros.validation.common import (
+    EPS,
+    NOLL,
+    PAPER,
+    R_PUPIL_M,
+    SPLIT,
+    SensorSetup,
+    Verdict,
+    rms,
+    wfe,
+)
 
-__all__ = ["Options", "fig4_orthogonality", "fig5_6_convergence", "fig7_perturbed",
-           "fig9_linearity", "fig10_atmosphere"]
+__all__ = ["Options", "estimate_pair", "lsst_pair", "fig4_orthogonality",
+           "fig5_6_convergence", "fig7_perturbed", "fig9_linearity", "fig10_atmosphere"]
 
 
 @dataclass(frozen=True)
@@ -60,14 +70,14 @@ def fig4_orthogonality(eps: float = EPS, jmax: int = 22) -> tuple[list[Verdict],
     """Inner products of Z1..Z22 on the ``eps``-obscured annulus (paper §3.1, Fig. 4).
 
     Standard (circle) Zernikes come from galsim with no inner radius; the annular ones from
-    the package's basis (:func:`cwfs_ros.core.zernike.zernike_basis`, galsim's Mahajan
+    the package's basis (:func:`cwfs_ros.wfs.zernike.zernike_basis`, galsim's Mahajan
     polynomials).  The integral is the package's exact annulus quadrature (Gauss-Legendre in
     r, uniform in azimuth), normalised as the area average (Noll): the identity for an
     orthonormal set.
     """
     from galsim.zernike import zernikeBasis
 
-    from ..core.zernike import annulus_quadrature, zernike_basis
+    from cwfs_ros.wfs.zernike import annulus_quadrature, zernike_basis
 
     x, y, w = annulus_quadrature(eps)
     std = zernikeBasis(jmax, x, y, R_outer=1.0, R_inner=0.0)[1:]
@@ -89,19 +99,19 @@ def fig4_orthogonality(eps: float = EPS, jmax: int = 22) -> tuple[list[Verdict],
 
 # -- Figs. 5 and 6 ------------------------------------------------------------------------
 
-def _estimate(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple, **kw: Any) -> Any:
-    from ..core import estimate_wavefront
+def estimate_pair(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple, **kw: Any) -> Any:
+    from cwfs_ros.wfs import estimate_wavefront
 
     return estimate_wavefront(intra, extra, field_intra_deg=fi, field_extra_deg=fe,
                               solver="exp", **kw)
 
 
-def _lsst_pair(tel: Any, fi: tuple, fe: tuple, setup: SensorSetup, wl: float,
+def lsst_pair(tel: Any, fi: tuple, fe: tuple, setup: SensorSetup, wl: float,
                photons: float | None, rng: np.random.Generator, rays: int = 2**21
                ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-traced (intra, extra) donuts: ``photons`` with Poisson noise, or, for None, the
     noise-free image of ``rays`` quasi-random rays (scaled to 1e6 photons)."""
-    from ..sim.render import render_donut
+    from cwfs_ros.sim.render import render_donut
 
     kw: dict[str, Any] = (dict(n_photons=photons) if photons is not None else
                           dict(n_photons=1e6, n_rays=rays, poisson=False, sampling="quasi"))
@@ -141,10 +151,10 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
     through batoid's i-band model at 770 nm.  Then the same LSST cases on the as-built
     split sensor (R44: intra at SW1, extra at SW0, 1.5 mm).
     """
-    from ..core import load_instrument
-    from ..sim.paraxial import render_paraxial_pair
-    from ..sim.render import true_zernikes_nm
-    from ..sim.telescope import load_lsst
+    from cwfs_ros.sim.paraxial import render_paraxial_pair
+    from cwfs_ros.sim.render import true_zernikes_nm
+    from cwfs_ros.sim.telescope import load_lsst
+    from cwfs_ros.wfs import load_instrument
 
     rng = np.random.default_rng(opts.seed)
     cases: list[dict] = []
@@ -154,7 +164,7 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
     amp = 770.0
     intra, extra = render_paraxial_pair(inst, {4: amp}, npix=120, n_photons=opts.rays,
                                         rng=rng, poisson=False, sampling="quasi")
-    r = _estimate(intra, extra, (0.0, 0.0), (0.0, 0.0), instrument=inst)
+    r = estimate_pair(intra, extra, (0.0, 0.0), (0.0, 0.0), instrument=inst)
     truth = np.zeros(19)
     truth[0] = amp
     dep = r.zernikes_nm - r.intrinsic_nm
@@ -172,8 +182,8 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
             fi, fe, mid = setup.fields(corner, field)
             tel, delta = inject_m1(tel0, noll, amp, mid, wl)
             nominal = true_zernikes_nm(tel0, mid, wavelength_nm=wl, eps=EPS)
-            intra, extra = _lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
-            r = _estimate(intra, extra, fi, fe, band="i", wavelength_nm=wl,
+            intra, extra = lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
+            r = estimate_pair(intra, extra, fi, fe, band="i", wavelength_nm=wl,
                           defocal_offset_mm=setup.defocus_mm)
             dep = r.zernikes_nm - nominal  # the departure from design, as injected
             err = r.zernikes_nm - (nominal + delta)
@@ -189,7 +199,7 @@ def fig5_6_convergence(opts: Options) -> tuple[list[Verdict], dict]:
 
 
 def inject_m1(tel: Any, noll: int, amp: float, field: tuple, wl: float) -> tuple[Any, np.ndarray]:
-    from .common import inject_m1_zernike
+    from cwfs_ros.validation.common import inject_m1_zernike
 
     return inject_m1_zernike(tel, noll, amp, field, wl)
 
@@ -202,8 +212,8 @@ def fig7_perturbed(opts: Options) -> tuple[list[Verdict], dict]:
     Truth: ``true_zernikes_nm`` of the perturbed model at the pair's (mid-point) field;
     r band, 622 nm.  Paper set-up at 1 mm, then the split sensor R04 at 1.5 mm.
     """
-    from ..sim.render import true_zernikes_nm
-    from ..sim.telescope import perturbed_telescope
+    from cwfs_ros.sim.render import true_zernikes_nm
+    from cwfs_ros.sim.telescope import perturbed_telescope
 
     rng = np.random.default_rng(opts.seed + 7)
     dof = np.zeros(50)
@@ -213,8 +223,8 @@ def fig7_perturbed(opts: Options) -> tuple[list[Verdict], dict]:
     verdicts, panels = [], []
     for setup in (PAPER, SPLIT):
         fi, fe, mid = setup.fields("R04", (-1.185, 1.185))
-        intra, extra = _lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
-        r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
+        intra, extra = lsst_pair(tel, fi, fe, setup, wl, None, rng, opts.rays)
+        r = estimate_pair(intra, extra, fi, fe, band="r", wavelength_nm=wl,
                       defocal_offset_mm=setup.defocus_mm)
         truth = true_zernikes_nm(tel, mid, wavelength_nm=wl, eps=EPS)
         err = r.zernikes_nm - truth
@@ -243,9 +253,9 @@ def fig9_linearity(opts: Options) -> tuple[list[Verdict], dict]:
     compared with the estimator's own ``caustic`` flag.  Linearity: the slope of recovered
     against true Z5 over the steps before the limit, fitted with an intercept.
     """
-    from ..sim.render import true_zernikes_nm
-    from ..sim.telescope import perturbed_telescope
-    from .common import fold_fraction
+    from cwfs_ros.sim.render import true_zernikes_nm
+    from cwfs_ros.sim.telescope import perturbed_telescope
+    from cwfs_ros.validation.common import fold_fraction
 
     rng = np.random.default_rng(opts.seed + 9)
     wl = 622.0
@@ -262,11 +272,11 @@ def fig9_linearity(opts: Options) -> tuple[list[Verdict], dict]:
             fold = max(fold_fraction(tel, fi, -setup.defocus_mm, wl),
                        fold_fraction(tel, fe, setup.defocus_mm, wl))
             # A large stamp: the tilted M2 throws the donut off its chief ray by coma.
-            intra, extra = _lsst_pair(tel, fi, fe, SensorSetup(setup.name, setup.defocus_mm,
+            intra, extra = lsst_pair(tel, fi, fe, SensorSetup(setup.name, setup.defocus_mm,
                                                                256),
                                       wl, None, rng, opts.linearity_rays)
             try:
-                r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
+                r = estimate_pair(intra, extra, fi, fe, band="r", wavelength_nm=wl,
                               defocal_offset_mm=setup.defocus_mm)
                 est, caustic, status = float(r.zernikes_nm[1]), bool(r.caustic), "ok"
                 # The outer loop's last update: a few nm while linear; it stays large where
@@ -374,7 +384,7 @@ class TimeIntegratedAtmosphere:
         """
         from galsim.zernike import zernikeBasis
 
-        from ..core.zernike import annulus_quadrature
+        from cwfs_ros.wfs.zernike import annulus_quadrature
 
         x, y, w = annulus_quadrature(EPS, n_radial=16, n_azimuth=64)
         theta = self._theta(field_deg)
@@ -403,9 +413,9 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
     (the mid-field value is reported too).  Compared: the covariances' largest singular
     values, and the covariance of (estimate - ideal), the algorithm's own noise.
     """
-    from ..sim.render import load_corner_geometry
-    from ..sim.telescope import load_lsst
-    from .common import render_deflected
+    from cwfs_ros.sim.render import load_corner_geometry
+    from cwfs_ros.sim.telescope import load_lsst
+    from cwfs_ros.validation.common import render_deflected
 
     corners = load_corner_geometry()
     tel = load_lsst("r")
@@ -428,7 +438,7 @@ def fig10_atmosphere(opts: Options) -> tuple[list[Verdict], dict]:
                                                  noise_free=True)
                                 for f, s in ((fi, -1.0), (fe, 1.0)))
                 try:
-                    r = _estimate(intra, extra, fi, fe, band="r", wavelength_nm=wl,
+                    r = estimate_pair(intra, extra, fi, fe, band="r", wavelength_nm=wl,
                                   defocal_offset_mm=setup.defocus_mm)
                     est.append(r.zernikes_nm)
                 except Exception:  # noqa: BLE001 - counted and reported

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .common import NOLL
+from cwfs_ros.validation.common import NOLL
 
 __all__ = ["plot_fig4", "plot_convergence", "plot_fig7", "plot_fig9", "plot_fig10",
            "plot_noise", "plot_solver"]
@@ -193,7 +193,7 @@ def plot_noise(data: dict, path: Path) -> Path:
 
 def plot_solver(data: dict, path: Path) -> Path:
     """Normalised singular spectrum of the corner sensitivity, and the DoF recovered."""
-    from ..sim.telescope import DOF_NAMES
+    from cwfs_ros.sim.telescope import DOF_NAMES
 
     fig = _figure(12.0, 4.4)
     a, b = fig.subplots(1, 2, width_ratios=[1, 2])

@@ -1,0 +1,295 @@
+"""One pair from files to a judged, documented estimate: what ``cwfs-ros estimate`` and
+``cwfs-ros batch`` run (ROS-free).
+
+* :func:`read_pair_image` reads an image file, or says why it is not an image ("a PNG
+  file", "binary data", ...), and the geometry its FITS header records (:data:`FITS_KEYS`).
+* :func:`assess` lists every check of an estimate with its outcome.  Three of them flag the
+  estimate as unusable: ``caustic`` (the compensation folded; the numbers are the last good
+  iteration's), ``plausible`` (a departure from design beyond what the telescope can hold
+  at this defocus, see :func:`plausible_limit_nm`) and ``swap`` when it could only have
+  raised.  The others are informational (``settled``, ``swap_check`` ...).
+* :func:`provenance` is the JSON record: inputs (path, size, SHA-256), instrument, band,
+  wavelength, defocal offset, solver, seeing, field sources, software versions and checks.
+
+FITS header keywords (in the HDU holding the image, else the primary header), read when
+present; a command-line value wins over the header:
+
+``FIELD_X``, ``FIELD_Y``  field angle of the star (x, y) in degrees, focal-plane frame;
+``DEFOCUS``               signed detector offset from focus in mm: negative intra-focal,
+                          positive extra-focal (its magnitude is the defocal offset; a sign
+                          that contradicts the image's role is refused: swapped files).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "FITS_KEYS",
+    "Check",
+    "PairInput",
+    "assess",
+    "plausible_limit_nm",
+    "provenance",
+    "read_pair_image",
+    "run_pair",
+    "software_versions",
+]
+
+FITS_KEYS = {"field_x": "FIELD_X", "field_y": "FIELD_Y", "defocus": "DEFOCUS"}
+# The fraction of the sensor's own defocus (as Z4) a departure from design may reach.
+PLAUSIBLE_FRACTION = 0.5
+_MAGIC = ((b"\x89PNG", "a PNG picture"), (b"\xff\xd8\xff", "a JPEG picture"),
+          (b"GIF8", "a GIF picture"), (b"II*\x00", "a TIFF picture"),
+          (b"MM\x00*", "a TIFF picture"), (b"%PDF", "a PDF document"),
+          (b"PK\x03\x04", "a ZIP archive"), (b"\x1f\x8b", "gzip-compressed data"))
+
+
+@dataclass
+class PairInput:
+    """An image read from a file, with what its header says about its geometry."""
+
+    path: Path
+    image: np.ndarray
+    field_deg: tuple[float, float] | None = None
+    defocus_mm: float | None = None
+
+    def describe(self) -> dict[str, Any]:
+        data = self.path.read_bytes()
+        return {"path": str(self.path), "bytes": len(data),
+                "sha256": hashlib.sha256(data).hexdigest(), "shape": list(self.image.shape)}
+
+
+def _not_an_image(path: Path, role: str, reason: str) -> Exception:
+    from cwfs_ros.errors import ImageError
+
+    return ImageError(f"{role} image {path}: not an image: {reason} (give .npy, FITS or a "
+                      "text table of numbers)")
+
+
+def _sniff(path: Path) -> str | None:
+    """Why a file meant as a text image is not one (None when it may be)."""
+    head = path.read_bytes()[:4096]
+    for magic, what in _MAGIC:
+        if head.startswith(magic):
+            return f"it is {what}"
+    if b"\x00" in head:
+        return "it holds binary data, not text"
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not merely a character cut at the 4 kB boundary
+            return f"it is not text (byte 0x{head[exc.start]:02x} at offset {exc.start})"
+    return None
+
+
+def _fits_geometry(path: Path) -> tuple[tuple[float, float] | None, float | None]:
+    from astropy.io import fits
+
+    with fits.open(path) as hdul:
+        hdus = [h for h in hdul if h.data is not None and getattr(h.data, "ndim", 0) == 2]
+        headers = [h.header for h in hdus[:1]] + [hdul[0].header]
+
+    def key(k: str) -> float | None:
+        for h in headers:
+            if k in h:
+                return float(h[k])
+        return None
+
+    fx, fy, dz = (key(FITS_KEYS[k]) for k in ("field_x", "field_y", "defocus"))
+    fld = (fx, fy) if fx is not None and fy is not None else None
+    return fld, dz
+
+
+def read_pair_image(path: str | Path, role: str, *, text_flip: bool = True) -> PairInput:
+    """The image of ``role`` (intra / extra) and its FITS geometry; ImageError "not an
+    image: <reason>" for a file that holds none."""
+    from cwfs_ros.errors import ImageError
+    from cwfs_ros.wfs.io import read_image
+
+    p = Path(path)
+    if not p.exists():
+        raise ImageError(f"{role} image {path}: no such file")
+    if not p.is_file():
+        raise ImageError(f"{role} image {path}: not a regular file")
+    name = p.name.lower()
+    is_fits = name.endswith((".fits", ".fit", ".fits.gz", ".fz"))
+    if not is_fits and not name.endswith(".npy"):
+        reason = _sniff(p)
+        if reason:
+            raise _not_an_image(p, role, reason)
+    try:
+        image = read_image(p, text_flip=text_flip)
+    except ImageError as exc:
+        reason = str(exc).split(": ", 1)[-1] if str(exc).startswith(("cannot", str(p))) else exc
+        raise _not_an_image(p, role, str(reason)) from None
+    fld, dz = _fits_geometry(p) if is_fits else (None, None)
+    if dz is not None and dz != 0 and (dz < 0) != (role == "intra"):
+        raise ImageError(f"{role} image {path}: its FITS header says {FITS_KEYS['defocus']} "
+                         f"= {dz:g} mm, an {'intra' if dz < 0 else 'extra'}-focal image "
+                         "(are intra and extra exchanged?)")
+    return PairInput(p, image, fld, None if dz is None else abs(dz))
+
+
+# ------------------------------------------------------------------------------ checks
+@dataclass
+class Check:
+    """One check of an estimate: ``outcome`` is pass / fail / off / a word of the check's
+    own (swap: confirmed / inconclusive); ``flags`` a fail that makes it unusable."""
+
+    name: str
+    outcome: str
+    detail: str
+    flags: bool = field(default=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "outcome": self.outcome, "detail": self.detail,
+                "flags_estimate": self.flags}
+
+
+def plausible_limit_nm(inst: Any, defocal_offset_mm: float) -> float:
+    """The largest departure from design (any of Z4..Z22, nm) taken as real.
+
+    A detector ``l`` mm from focus sees a defocus of ``Z4 = l / (16 sqrt(3) N^2)`` (Noll
+    normalisation, f-number N): 35.6 um for LSST at 1.5 mm.  A departure of half that would
+    move the focus halfway to the sensor and change the donut's size by half; the telescope
+    is not operated there and the estimator's mapping does not hold there, so such a number
+    is a wrong input (field, defocus, instrument) rather than a wavefront.
+    """
+    z4_nm = defocal_offset_mm * 1e6 / (16.0 * math.sqrt(3.0) * inst.f_number ** 2)
+    return PLAUSIBLE_FRACTION * z4_nm
+
+
+def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
+    """Every check of an estimate, in the order the estimate met them."""
+    r = math.hypot(*result.field_deg)
+    limit = plausible_limit_nm(inst, defocal_offset_mm)
+    dep = np.asarray(result.zernikes_nm) - np.asarray(result.intrinsic_nm)
+    worst = int(np.argmax(np.abs(dep)))
+    last = float(result.residual_rms_nm[-1]) if len(result.residual_rms_nm) else float("nan")
+    return [
+        Check("field_of_view", "pass", f"field {r:.3f} deg off axis, within "
+              f"{inst.field_radius_deg:g} deg"),
+        Check("image_checks", "pass", "finite, not flat, not cut, large enough, not "
+              "saturated (each would have refused the pair)"),
+        Check("swap_check", result.swap_check, "intra/extra told apart by the vignetting: "
+              "confirmed, inconclusive, or off (on axis, or disabled)"),
+        Check("caustic", "fail" if result.caustic else "pass",
+              "the compensation folded into caustic: the numbers are the last good "
+              "iteration's" if result.caustic else "no caustic", flags=bool(result.caustic)),
+        Check("plausible", "fail" if abs(dep[worst]) > limit else "pass",
+              f"largest departure from design Z{int(result.noll[worst])} = "
+              f"{dep[worst]:.0f} nm, limit {limit:.0f} nm (half the sensor's own defocus)",
+              flags=bool(abs(dep[worst]) > limit)),
+        Check("settled", "yes" if result.converged else "no",
+              f"last update {last:.3g} nm after {result.iterations} iterations (yes: below "
+              "the solver's tolerance; no is not an error)"),
+    ]
+
+
+def software_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    from cwfs_ros import __version__
+
+    out = {"cwfs_ros": __version__, "python": platform.python_version()}
+    for dist in ("numpy", "scipy", "batoid", "astropy"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def provenance(inputs: dict[str, PairInput], *, instrument: Any, defocal_offset_mm: float,
+               seeing_fwhm_arcsec: float, field_sources: dict[str, str],
+               checks: list[Check]) -> dict[str, Any]:
+    """The record that makes an estimate reproducible (the ``--json`` additions)."""
+    return {
+        "inputs": {role: pi.describe() for role, pi in inputs.items()},
+        "instrument_file": instrument.name,
+        "defocal_offset_mm": defocal_offset_mm,
+        "seeing_fwhm_arcsec": seeing_fwhm_arcsec,
+        "field_sources": field_sources,
+        "software": software_versions(),
+        "checks": [c.as_dict() for c in checks],
+        "flags": [c.name for c in checks if c.flags],
+    }
+
+
+@dataclass
+class PairRun:
+    """An estimate with its checks and its record (:func:`run_pair`)."""
+
+    result: Any
+    inputs: dict[str, PairInput]
+    checks: list[Check]
+    record: dict[str, Any]
+
+    @property
+    def flags(self) -> list[Check]:
+        return [c for c in self.checks if c.flags]
+
+
+def _geometry(inputs: dict[str, PairInput], fields: dict[str, Any],
+              defocal_offset_mm: float | None, inst: Any
+              ) -> tuple[dict[str, tuple[float, float]], dict[str, str], float]:
+    got, sources = {}, {}
+    for role, pi in inputs.items():
+        if fields.get(role) is not None:
+            got[role], sources[role] = tuple(float(v) for v in fields[role]), "command line"
+        elif pi.field_deg is not None:
+            got[role], sources[role] = pi.field_deg, f"FITS header {pi.path.name}"
+        else:
+            from cwfs_ros.errors import ConfigError
+
+            raise ConfigError(f"no field for the {role} image: give --field-{role} X Y, or "
+                              f"{FITS_KEYS['field_x']}/{FITS_KEYS['field_y']} (deg) in its "
+                              "FITS header")
+    headers = {pi.defocus_mm for pi in inputs.values() if pi.defocus_mm is not None}
+    if defocal_offset_mm is not None:
+        defocus = float(defocal_offset_mm)
+    elif len(headers) == 1:
+        defocus = headers.pop()
+    elif headers:
+        from cwfs_ros.errors import ConfigError
+
+        raise ConfigError(f"the FITS headers disagree on the defocal offset: {sorted(headers)}"
+                          " mm; give --defocal-offset")
+    else:
+        defocus = inst.defocal_offset_mm
+    return got, sources, defocus
+
+
+def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
+             field_extra: Any = None, instrument: str = "lsst", band: str | None = None,
+             wavelength_nm: float | None = None, defocal_offset_mm: float | None = None,
+             solver: str = "lsq", seeing_fwhm_arcsec: float = 0.0, text_flip: bool = True,
+             **algorithm: Any) -> PairRun:
+    """Read a pair of files, estimate, check and record (errors: the core's CwfsError)."""
+    from cwfs_ros.wfs import estimate_wavefront, load_instrument
+
+    inst = load_instrument(instrument)
+    inputs = {"intra": read_pair_image(intra, "intra", text_flip=text_flip),
+              "extra": read_pair_image(extra, "extra", text_flip=text_flip)}
+    fields, sources, defocus = _geometry(inputs, {"intra": field_intra, "extra": field_extra},
+                                         defocal_offset_mm, inst)
+    band = band or inst.default_band
+    result = estimate_wavefront(
+        inputs["intra"].image, inputs["extra"].image, field_intra_deg=fields["intra"],
+        field_extra_deg=fields["extra"], instrument=inst, band=band,
+        wavelength_nm=wavelength_nm, defocal_offset_mm=defocus, solver=solver,
+        seeing_fwhm_arcsec=seeing_fwhm_arcsec, **algorithm)
+    checks = assess(result, inst, defocus)
+    record = provenance(inputs, instrument=inst, defocal_offset_mm=defocus,
+                        seeing_fwhm_arcsec=seeing_fwhm_arcsec, field_sources=sources,
+                        checks=checks)
+    record["field_intra_deg"], record["field_extra_deg"] = fields["intra"], fields["extra"]
+    return PairRun(result, inputs, checks, record)

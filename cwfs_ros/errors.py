@@ -1,0 +1,98 @@
+"""The project's one exception hierarchy: every error raised on purpose is a :class:`CwfsError`.
+
+    CwfsError
+    ├── ConfigError (ValueError)        a configuration file, parameter or parameter file
+    │   └── ParamsFileError             a ROS parameter file that cannot be used
+    ├── ImageError (ValueError)         a donut image that cannot be used (``reason`` tag)
+    ├── BagError                        a rosbag2 bag that cannot be written, read or decoded
+    ├── LaunchError (RuntimeError)      a node that cannot be started
+    ├── ToolError                       a graph tool's target is missing or refused the request
+    ├── LoopError (RuntimeError)        the closed-loop demo could not run
+    └── CliError                        a command-line user error (exit status 2)
+
+Each names the problem in its message, on one line where a user reads it.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
+    "DonutCutError", "ShapeMismatchError", "StampTooSmallError", "SaturatedImageError",
+    "SwappedImagesError", "ParamsFileError", "BagError", "LaunchError", "ToolError",
+    "LoopError", "CliError",
+]
+
+
+class CwfsError(Exception):
+    """Base class of every error the core raises on purpose."""
+
+
+class ConfigError(CwfsError, ValueError):
+    """An instrument or configuration file, or a parameter, is missing, mistyped or invalid."""
+
+
+class ImageError(CwfsError, ValueError):
+    """A donut image cannot be used. ``reason`` is a short machine-readable tag."""
+
+    reason = "bad_image"
+
+
+class NonFiniteImageError(ImageError):
+    reason = "non_finite"
+
+
+class FlatImageError(ImageError):
+    reason = "flat_or_empty"
+
+
+class DonutCutError(ImageError):
+    reason = "donut_cut_by_edge"
+
+
+class ShapeMismatchError(ImageError):
+    reason = "shape_mismatch"
+
+
+class StampTooSmallError(ImageError):
+    reason = "stamp_too_small"
+
+
+class SaturatedImageError(ImageError):
+    """Pixels at the detector's saturation level, or a clipped flat top (:mod:`.checks`)."""
+
+    reason = "saturated"
+
+
+class SwappedImagesError(ImageError):
+    """The intra- and extra-focal images look exchanged (:mod:`.checks`)."""
+
+    reason = "swapped"
+
+
+class ParamsFileError(ConfigError):
+    """A parameter file that cannot be used; the message names the file and the key."""
+
+
+class BagError(CwfsError):
+    """A bag cannot be written, read or decoded; the message says why, on one line."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))
+
+
+class LaunchError(CwfsError, RuntimeError):
+    """A node cannot be started; the message says why and what to do."""
+
+
+class ToolError(CwfsError):
+    """A target that is not there or a request the graph refused: one line, exit 1."""
+
+    exit_code = 1
+
+
+class LoopError(CwfsError, RuntimeError):
+    """The loop could not run (a node failed to start, a visit timed out); says which."""
+
+
+class CliError(CwfsError):
+    """A user-facing error of a sub-command: reported on stderr, exit status 2."""

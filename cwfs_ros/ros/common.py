@@ -1,0 +1,389 @@
+"""Shared pieces of the cwfs_ros nodes: QoS, parameter descriptors, stamps, diagnostics.
+
+QoS, chosen on purpose
+----------------------
+* Images (:data:`IMAGE_QOS`): RELIABLE, KEEP_LAST, depth 10. One lost image loses its whole
+  corner for the visit, so the images must not be dropped by the transport (best-effort
+  ``sensor_data`` QoS would). Each image topic carries one image per visit; a depth of 10 lets
+  the subscriber absorb a burst of up to 10 visits (a bag replayed fast, a stalled executor)
+  without loss, while KEEP_LAST (not KEEP_ALL) bounds memory and back-pressure if the node
+  falls behind for good: the oldest images are then dropped and reported as unpaired. A
+  RELIABLE subscription does **not** match a BEST_EFFORT publisher (DDS: the offered
+  reliability must be at least the requested one), so a camera driver publishing with
+  ``sensor_data`` QoS would never be heard: the wavefront node reports such a publisher on
+  /diagnostics (:class:`QosEventMonitor`) and its ``image_reliability`` parameter can be set
+  to ``best_effort`` to match it. Large bursts need the FastDDS profile of
+  ``config/fastdds_profile.xml`` (16 MiB shared-memory segment), which the entry points load.
+* Outputs (:data:`OUTPUT_QOS`): RELIABLE, KEEP_LAST 10, VOLATILE: every visit's result must
+  reach the controller and recorders; stale corrections must not be replayed to a late joiner
+  (a DoF correction is only meaningful for the telescope state it was computed against).
+* ``/diagnostics`` (:data:`DIAGNOSTICS_QOS`): the ROS default (reliable, keep-last 10), as
+  diagnostic aggregators expect.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from functools import lru_cache
+from typing import Any
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+__all__ = [
+    "DIAGNOSTICS_QOS",
+    "IMAGE_QOS",
+    "OUTPUT_QOS",
+    "QosEventMonitor",
+    "image_qos",
+    "RejectionCounter",
+    "MAX_STRING_PARAM_LEN",
+    "SequenceGaps",
+    "bundled_declarer",
+    "foreign_publishers",
+    "string_param_problem",
+    "describe",
+    "diagnostic_status",
+    "diagnostics_array",
+    "ns_to_stamp",
+    "result",
+    "stamp_to_ns",
+]
+
+IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+DIAGNOSTICS_QOS = QoSProfile(depth=10)
+RELIABILITIES = ("reliable", "best_effort")
+
+
+def image_qos(reliability: str = "reliable") -> QoSProfile:
+    """:data:`IMAGE_QOS` with the given reliability (``reliable`` or ``best_effort``)."""
+    if reliability not in RELIABILITIES:
+        raise ValueError(f"image reliability must be one of {RELIABILITIES}, "
+                         f"got {reliability!r}")
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=IMAGE_QOS.depth,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliability == "reliable"
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=DurabilityPolicy.VOLATILE)
+
+OK = DiagnosticStatus.OK
+WARN = DiagnosticStatus.WARN
+ERROR = DiagnosticStatus.ERROR
+
+
+def describe(description: str, *, read_only: bool = False,
+             fp_range: tuple[float, float] | None = None,
+             int_range: tuple[int, int] | None = None,
+             constraints: str = "") -> ParameterDescriptor:
+    """A ParameterDescriptor with a description and an optional numeric range."""
+    d = ParameterDescriptor(description=description, read_only=read_only,
+                            additional_constraints=constraints)
+    if fp_range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(fp_range[0]),
+                                                     to_value=float(fp_range[1]), step=0.0)]
+    if int_range is not None:
+        d.integer_range = [IntegerRange(from_value=int(int_range[0]),
+                                        to_value=int(int_range[1]), step=1)]
+    return d
+
+
+@lru_cache(maxsize=4)
+def _bundled_params(path: str) -> dict[str, dict[str, Any]]:
+    from cwfs_ros.ros.params import read_params_file
+
+    return {key.lstrip("/"): values for key, values in read_params_file(path).items()}
+
+
+def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescriptor], Any]:
+    """``declare(name, descriptor)`` for ``node``, with the default value taken from the
+    ``section`` of ``config/params.yaml``.
+
+    That file is what every entry point loads, so it is the one place a default is written:
+    a node built without it (a test, an embedding program) starts with the same values as
+    ``cwfs-ros bringup`` (a literal beside each declaration had drifted: wavefront_node
+    declared solver ``exp`` while the file set ``lsq``).  The descriptor's range fixes the
+    type the file's YAML cannot: a number for a floating-point range is declared as a float
+    (``5`` as 5.0: declared as an integer, the parameter would refuse a later 2.5), and a
+    value of the wrong kind (``1e6`` is a string to YAML 1.1) is a ConfigError naming the
+    file and the key, as is a parameter the file lacks.
+    """
+    from cwfs_ros.errors import ConfigError
+    from cwfs_ros.ros.launch import default_params_file
+
+    path = str(default_params_file())
+    values = _bundled_params(path).get(section, {})
+
+    def declare(name: str, descriptor: ParameterDescriptor) -> Any:
+        where = f"{path}: {section}.{name}"
+        if name not in values:
+            raise ConfigError(f"{where} is missing: every declared parameter takes its "
+                              "default from that file")
+        value = values[name]
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if descriptor.floating_point_range:
+            if not number:
+                raise ConfigError(f"{where} must be a number, got {value!r}")
+            value = float(value)
+        elif descriptor.integer_range and not (number and isinstance(value, int)):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return node.declare_parameter(name, value, descriptor)
+
+    return declare
+
+
+def result(ok: bool, reason: str = "") -> SetParametersResult:
+    return SetParametersResult(successful=bool(ok), reason=reason)
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def stamp_problem(stamp: Time) -> str | None:
+    """Why a header stamp cannot be used, or None.
+
+    builtin_interfaces/Time requires ``nanosec`` below 1e9, but nothing enforces it: such a
+    stamp names a time that does not round-trip (``ns_to_stamp`` carries the excess into
+    ``sec``, which can overflow its int32), so an output stamped with it would be refused at
+    publication or go out with another visit's stamp.
+    """
+    if int(stamp.nanosec) >= 1_000_000_000:
+        return (f"bad_stamp: nanosec {int(stamp.nanosec)} is not below 1e9 "
+                "(builtin_interfaces/Time)")
+    return None
+
+
+def ns_to_stamp(ns: int) -> Time:
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=int(sec), nanosec=int(nsec))
+
+
+class RejectionCounter:
+    """Thread-safe counts of rejected inputs by reason, plus the last one.
+
+    :meth:`log_due` throttles the log per reason: a flood of one reason would otherwise write
+    a line per message, and one throttle shared by every reason (rclpy's
+    ``throttle_duration_sec`` keeps one per call site) would hide a second reason under it.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self.suppressed: Counter[str] = Counter()
+        self.logged: Counter[str] = Counter()
+        self._logged_at: dict[str, float] = {}
+        self.last_reason = ""
+        self.last_message = ""
+        self.last_time = 0.0
+
+    def log_due(self, reason: str, period_s: float) -> tuple[bool, int]:
+        """(whether a line for ``reason`` may be logged now, lines suppressed since the last
+        one). At most one line per reason per ``period_s`` (0: every one)."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._logged_at.get(reason)
+            if period_s > 0 and last is not None and now - last < period_s:
+                self.suppressed[reason] += 1
+                return False, 0
+            self._logged_at[reason] = now
+            self.logged[reason] += 1
+            n = self.suppressed.pop(reason, 0)
+            return True, n
+
+    def add(self, reason: str, message: str) -> None:
+        with self._lock:
+            self.counts[reason] += 1
+            self.last_reason, self.last_message = reason, message
+            self.last_time = time.monotonic()
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+    def recent(self, window_s: float) -> bool:
+        with self._lock:
+            return bool(self.counts) and time.monotonic() - self.last_time < window_s
+
+    def key_values(self) -> list[tuple[str, str]]:
+        with self._lock:
+            out = [("rejected_total", str(sum(self.counts.values())))]
+            out += [(f"rejected.{k}", str(v)) for k, v in sorted(self.counts.items())]
+            out += [("last_rejection", self.last_message or "none")]
+            return out
+
+
+# Longest string parameter taken (frame_id, ...): a frame name is a few words; a megabyte
+# would be copied into every message header.
+MAX_STRING_PARAM_LEN = 256
+
+
+def string_param_problem(name: str, value: object,
+                         max_len: int = MAX_STRING_PARAM_LEN) -> str | None:
+    """Why a string parameter value is refused (too long, control characters), or None."""
+    if not isinstance(value, str):
+        return None
+    if len(value) > max_len:
+        return f"{name} is {len(value)} characters long; at most {max_len} are taken"
+    if any(ord(ch) < 32 for ch in value):
+        return f"{name} must not hold control characters"
+    return None
+
+
+def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
+    """``"<topic>: <namespace>/<node>"`` for every publisher on ``topics`` (this node's own
+    outputs) that is not ``node`` itself.
+
+    Without DDS Security nothing stops another process from publishing on a topic this node
+    owns; consumers cannot tell its messages from the node's, so the node names such
+    publishers on /diagnostics. ``topics`` are names as the node created them (resolved
+    here).
+    """
+    me = (node.get_namespace().rstrip("/"), node.get_name())
+    out = []
+    for t in topics:
+        try:
+            name = node.resolve_topic_name(t)
+            infos = node.get_publishers_info_by_topic(name)
+        except Exception:  # noqa: BLE001 - a graph query must not break diagnostics
+            continue
+        for info in infos:
+            who = (str(info.node_namespace).rstrip("/"), str(info.node_name))
+            if who != me:
+                out.append(f"{name}: {who[0]}/{who[1]}")
+    return sorted(out)
+
+
+class SequenceGaps:
+    """Messages a subscription never took, from the publishers' sequence numbers.
+
+    A RELIABLE KEEP_LAST reader whose queue overflows drops the oldest samples without any
+    ``message_lost`` event (FastDDS reports none for them); each message's
+    ``publication_sequence_number`` (rclpy's message info) still counts every sample its
+    writer sent, so a forward jump of more than one is that many messages dropped. Exact
+    with one publisher on the topic; with several (reported as other publishers), their
+    interleaved numbers make it an estimate, said so on /diagnostics. Counted from the first
+    message taken: a reader that joins late sees a writer's numbers from where it is.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: int | None = None
+        self.dropped = 0
+
+    def note(self, info: Any) -> int:
+        """Account one taken message; return how many were dropped just before it."""
+        try:
+            seq = int(info["publication_sequence_number"])
+        except (TypeError, KeyError, ValueError):
+            return 0
+        with self._lock:
+            last, self._last = self._last, seq
+            gap = seq - last - 1 if last is not None and seq > last + 1 else 0
+            self.dropped += gap
+            return gap
+
+
+def diagnostic_status(name: str, level: bytes, message: str,
+                      values: Sequence[tuple[str, object]], hardware_id: str = "") -> \
+        DiagnosticStatus:
+    return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                            values=[KeyValue(key=str(k), value=str(v)) for k, v in values])
+
+
+def diagnostics_array(stamp: Time, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
+    arr = DiagnosticArray()
+    arr.header.stamp = stamp
+    arr.status = list(statuses)
+    return arr
+
+
+class QosEventMonitor:
+    """Counts and describes QoS events of a node's subscriptions and publishers.
+
+    A QoS mismatch in DDS is silent: the two endpoints simply never connect. A message lost
+    by the middleware (a reader that fell behind a best-effort writer) is silent too. This
+    turns both into log lines and /diagnostics entries, so that a camera or controller that
+    cannot be heard is reported instead of waited for.
+
+    Use :meth:`subscription_callbacks` / :meth:`publisher_callbacks` as the
+    ``event_callbacks`` argument of ``create_subscription`` / ``create_publisher``.
+    """
+
+    def __init__(self, logger) -> None:
+        self._logger = logger
+        self._lock = threading.Lock()
+        self.incompatible: Counter[str] = Counter()
+        self.lost: Counter[str] = Counter()
+        self.last_problem = ""
+        self._last_t = -1e9
+
+    def _note(self, text: str) -> None:
+        with self._lock:
+            self.last_problem = text
+            self._last_t = time.monotonic()
+        self._logger.error(text)
+
+    def subscription_callbacks(self, topic: str):
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        def incompatible(event) -> None:
+            with self._lock:
+                self.incompatible[topic] += 1
+            self._note(f"a publisher on {topic} offers a QoS incompatible with this "
+                       f"subscription (policy {_policy_name(event.last_policy_kind)}): no "
+                       "messages will arrive from it")
+
+        def lost(event) -> None:
+            with self._lock:
+                self.lost[topic] += int(event.total_count_change)
+            self._note(f"{event.total_count_change} message(s) lost on {topic} "
+                       f"({event.total_count} in all)")
+
+        return SubscriptionEventCallbacks(incompatible_qos=incompatible, message_lost=lost)
+
+    def publisher_callbacks(self, topic: str):
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        def incompatible(event) -> None:
+            with self._lock:
+                self.incompatible[topic] += 1
+            self._note(f"a subscriber on {topic} requests a QoS this publisher does not "
+                       f"offer (policy {_policy_name(event.last_policy_kind)}): it will "
+                       "receive nothing")
+
+        return PublisherEventCallbacks(incompatible_qos=incompatible)
+
+    def problem(self) -> str | None:
+        """The latest problem if any topic has an incompatible peer, else ``None``."""
+        with self._lock:
+            return self.last_problem if self.incompatible else None
+
+    def recent(self, window_s: float) -> bool:
+        with self._lock:
+            return time.monotonic() - self._last_t < window_s
+
+    def key_values(self) -> list[tuple[str, str]]:
+        with self._lock:
+            out = [(f"qos_incompatible.{t}", str(n)) for t, n in sorted(self.incompatible.items())]
+            out += [(f"messages_lost.{t}", str(n)) for t, n in sorted(self.lost.items())]
+        return out
+
+
+def _policy_name(kind) -> str:
+    name = getattr(kind, "name", str(kind))
+    return name.replace("RMW_QOS_POLICY_", "").lower()

@@ -1,0 +1,795 @@
+"""wavefront_node: donut image pairs in, per-corner wavefronts and the visit's 76-vector out.
+
+Topics (relative names; in the root namespace they are the ones below)
+---------------------------------------------------------------------
+in   ``/aos/wfs/<corner>/<side>/image``  sensor_msgs/Image, side ``intra`` | ``extra``, one
+     subscription per served corner and side (:func:`~.common.image_qos`, reliable unless
+     ``image_reliability`` says best_effort). ``header.stamp`` is the
+     exposure time; the intra and extra images of a visit carry equal stamps.
+out  ``/aos/wfs/<corner>/wavefront``     cwfs_msgs/CornerWavefront, as soon as that corner's
+     pair is estimated (valid=false with a status naming the problem otherwise).
+in   ``/aos/wfs/<corner>/wavefront``     for corners served by *other* processes, when
+     ``assemble`` is true: the vector is assembled from CornerWavefront messages wherever
+     they were produced.
+out  ``/aos/wfs/wavefront``              cwfs_msgs/WavefrontVector, when the four corners of a
+     visit are in, or after ``visit_timeout_s`` with the missing corners marked invalid.
+out  ``/diagnostics``                    state, counts of rejected inputs and the last reason,
+     pending memory, messages lost, and any other publisher on the topics this node owns.
+
+Input guards (docs/reliability.md): an image stamped more than ``max_future_s`` ahead of the
+node's clock, or whose ``header.frame_id`` names another corner or side than its topic's, is
+refused (``future_stamp``, ``frame_mismatch``); images waiting for their partners hold at most
+``max_pending_mb`` (the oldest is dropped first, ``memory_limit``); two different images for
+one corner, side and stamp make that corner invalid (``conflicting_images``, see
+:mod:`cwfs_ros.runtime.visits`). Rejections are logged at most once per ``log_throttle_s`` per
+reason, and all of them counted.
+
+Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
+(:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
+The pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from concurrent.futures import Future
+
+import numpy as np
+from cwfs_msgs.msg import CornerWavefront, WavefrontVector
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from cwfs_ros.errors import ConfigError
+from cwfs_ros.frames.selection import load_selection_config
+from cwfs_ros.layout import CORNERS, SIDES, VECTOR_TOPIC, corner_topic, image_topic
+from cwfs_ros.ros.common import (
+    DIAGNOSTICS_QOS,
+    ERROR,
+    MAX_STRING_PARAM_LEN,
+    OK,
+    OUTPUT_QOS,
+    WARN,
+    QosEventMonitor,
+    RejectionCounter,
+    SequenceGaps,
+    bundled_declarer,
+    describe,
+    diagnostic_status,
+    diagnostics_array,
+    foreign_publishers,
+    image_qos,
+    result,
+    stamp_problem,
+    stamp_to_ns,
+    string_param_problem,
+)
+from cwfs_ros.ros.convert import (
+    corner_entry_from_msg,
+    corner_wavefront_msg,
+    image_record_from_msg,
+    wavefront_vector_msg,
+)
+from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool, invalid_outcome
+from cwfs_ros.runtime.visits import (
+    CornerEntry,
+    PairingBuffer,
+    PairReady,
+    Rejection,
+    VisitAssembler,
+    VisitVector,
+    checked_entry,
+    corner_entry_from_outcome,
+    load_corner_fields,
+)
+from cwfs_ros.wfs.blur import MAX_SEEING_FWHM_ARCSEC
+from cwfs_ros.wfs.orientation import FLIPS, Orientation
+from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
+
+__all__ = ["WavefrontNode", "main"]
+
+NODE_NAME = "wavefront_node"
+_SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px",
+                    "seeing_fwhm_arcsec")
+_SOLVERS = ("exp", "fft", "lsq")
+_INPUT_MODES = ("auto", "stamps", "frames")
+_WARM_ATTEMPTS = 2  # a corner's warm-up is retried once (a worker killed while warming)
+
+
+
+
+class WavefrontNode(Node):
+    """Pairs images, estimates corners in parallel processes, publishes the wavefronts.
+
+    Keyword arguments go to :class:`rclpy.node.Node` (``context``, ``parameter_overrides``,
+    ``cli_args``, ``namespace`` ...).
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self._lock = threading.RLock()
+        self._declare_parameters()
+        p = self._param
+        corners = list(p("corners"))
+        bad = [c for c in corners if c not in CORNERS] or ([] if corners else ["(none)"])
+        if bad or len(set(corners)) != len(corners):
+            raise ConfigError(f"parameter corners must be distinct names among {CORNERS}, "
+                              f"got {corners}")
+        self.corners = tuple(c for c in CORNERS if c in corners)
+        self.fields = load_corner_fields(p("sensor_config") or None)
+        missing = [c for c in self.corners if c not in self.fields]
+        if missing:
+            raise ConfigError(f"no field points for corners {missing} in the sensor config")
+        self.settings = self._settings_from(lambda n: p(n))
+        validate_settings(self.settings)
+        # A bad selection file stops the node at start, as a bad sensor file does, rather
+        # than making every frame visit invalid (the workers read it per visit).
+        load_selection_config(p("selection_config") or None, solver=self.settings.solver)
+        self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
+                             for c in self.corners for s in SIDES}
+        self.frame_id = p("frame_id")
+        bad = string_param_problem("frame_id", self.frame_id)
+        if bad is not None:
+            raise ConfigError(f"parameter {bad}")
+        tol_ns = int(round(p("pairing_tolerance_s") * 1e9))
+        timeout = p("visit_timeout_s")
+        self.pairing = PairingBuffer(self.corners, tolerance_ns=tol_ns, timeout_s=timeout)
+        self.assemble = bool(p("assemble"))
+        self.assembler = (VisitAssembler(tolerance_ns=tol_ns, timeout_s=timeout)
+                          if self.assemble else None)
+        self.rejected = RejectionCounter()
+        self.stats = {"images": 0, "pairs": 0, "corners_valid": 0, "corners_invalid": 0,
+                      "visits_published": 0, "visits_incomplete": 0, "frame_pairs": 0}
+        self.last_compute_ms: dict[str, float] = {}
+        self.last_status: dict[str, str] = {}
+        # (monotonic time, what was missing) of the last visit published incomplete: WARN on
+        # /diagnostics for a minute, as a producer that stopped is not an input rejected.
+        self.last_incomplete: tuple[float, str] | None = None
+        # (corner, visit stamp) of visits whose corner had conflicting images after pairing:
+        # their estimate is published invalid (bounded, oldest forgotten first).
+        self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
+        self.foreign: list[str] = []
+        # Images never taken (the queue overflowed), per topic, from sequence numbers.
+        self.image_gaps = {(c, s): SequenceGaps() for c in self.corners for s in SIDES}
+
+        img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
+        # Worker processes, warmed up in the background.
+        self.pool = CornerPool(self.corners, p("workers"))
+        self._warm: dict[str, dict] = {}
+        self._warm_generation = 0
+        self._start_warm_up()
+
+        self._cb_images = MutuallyExclusiveCallbackGroup()
+        self._cb_timers = MutuallyExclusiveCallbackGroup()
+        self._cb_remote = ReentrantCallbackGroup()
+        self.pub_corner = {c: self.create_publisher(CornerWavefront, corner_topic(c), OUTPUT_QOS)
+                           for c in self.corners}
+        self.pub_vector = (self.create_publisher(WavefrontVector, VECTOR_TOPIC, OUTPUT_QOS)
+                           if self.assemble else None)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._subs = []
+        self.qos_events = QosEventMonitor(self.get_logger())
+        for c in self.corners:
+            for s in SIDES:
+                topic = image_topic(c, s)
+                cb = self._image_callback(c, s)
+                # Two arguments: rclpy passes the message info (its sequence numbers).
+                self._subs.append(self.create_subscription(
+                    Image, topic, lambda msg, info, cb=cb: cb(msg, info), img_qos,
+                    callback_group=self._cb_images,
+                    event_callbacks=self.qos_events.subscription_callbacks(topic)))
+        if self.assemble:
+            for c in CORNERS:
+                if c not in self.corners:
+                    self._subs.append(self.create_subscription(
+                        CornerWavefront, corner_topic(c), self._remote_corner_callback(c),
+                        OUTPUT_QOS, callback_group=self._cb_remote))
+        self._expiry_timer = self.create_timer(0.1, self._expire,
+                                               callback_group=self._cb_timers)
+        self._diag_timer = self.create_timer(p("diagnostics_period_s"), self.publish_diagnostics,
+                                             callback_group=self._cb_timers)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(
+            f"serving corners {', '.join(self.corners)} with {self.pool.n_workers} worker "
+            f"process(es) (affinity {self.pool.affinity}); assemble={self.assemble}; "
+            f"settings {self.settings}")
+
+    # ------------------------------------------------------------------ parameters
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def _declare_parameters(self) -> None:
+        d = bundled_declarer(self, "wavefront_node")
+        d("instrument", describe(
+            "Instrument model: a config/instruments/<name>.yaml name or a path to one."))
+        d("band", describe("Filter band of the optical model.",
+                                constraints="u | g | r | i | z | y"))
+        d("solver", describe("TIE solver: exp (series expansion), fft, lsq.",
+                                    constraints=" | ".join(_SOLVERS)))
+        d("outer_iterations", describe(
+            "Outer compensation iterations; 0 = the value of config/algorithm.yaml.",
+            int_range=(0, 100)))
+        d("pad_px", describe(
+            "Background padding [px] added around each stamp before estimation (border "
+            "median), for stamps cut so tight that the estimator rejects the donut as touching "
+            "the edge; 0 = none (160 px corner stamps need none).",
+            int_range=(0, 256)))
+        d("seeing_fwhm_arcsec", describe(
+            "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
+            "lsq and exp solvers take the blur's edge signal out of the difference image (README, "
+            "Accuracy); 0 = not given: no such correction.",
+            fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC)))
+        d("pairing_tolerance_s", describe(
+            "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
+            fp_range=(0.0, 10.0)))
+        d("visit_timeout_s", describe(
+            "How long [s] an image waits for its partner, and a visit for its four corners, "
+            "before it is dropped / published with the missing corners invalid (checked "
+            "every 0.1 s).",
+            fp_range=(0.05, 600.0)))
+        d("workers", describe(
+            "Worker processes for the corner estimates; 0 = min(#corners, #CPUs).",
+            read_only=True, int_range=(0, 64)))
+        d("corners", describe(
+            "Corners served by this instance (subset of R00 R04 R40 R44).", read_only=True))
+        d("assemble", describe(
+            "Assemble and publish the 76-vector here, subscribing to the CornerWavefront "
+            "topics of the corners served elsewhere.", read_only=True))
+        d("sensor_config", describe(
+            "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
+            read_only=True))
+        d("frame_id", describe("frame_id of the published messages."))
+        d("input_mode", describe(
+            "What the images are: stamps (one donut each, oriented by sensors.*), frames (a "
+            "half-chip each with several stars: detection, per-star field, pairing and "
+            "combination, oriented by the frames section of sensor_config), or auto (frames "
+            "when a side is >= frame_min_side_px).", constraints="auto | stamps | frames"))
+        d("frame_min_side_px", describe(
+            "With input_mode auto, an image with a side of at least this many pixels is a "
+            "frame [px].", int_range=(16, 8192)))
+        d("selection_config", describe(
+            "Donut selection YAML for frames; empty = config/selection.yaml.",
+            read_only=True))
+        d("image_reliability", describe(
+            "QoS reliability of the image subscriptions: reliable (a lost image loses the "
+            "corner's visit) or best_effort (needed to hear a camera that publishes with "
+            "sensor_data QoS: a reliable subscription never matches a best-effort "
+            "publisher).", constraints="reliable | best_effort", read_only=True))
+        d("diagnostics_period_s", describe("Period of /diagnostics [s].",
+                                                read_only=True, fp_range=(0.05, 60.0)))
+        for c in CORNERS:
+            for s in SIDES:
+                d(f"sensors.{c}.{s}.rot90", describe(
+                    f"Quarter turns (numpy.rot90, counter-clockwise) that bring the {c} {s} "
+                    "image into the focal-plane frame; applied before the flip.",
+                    int_range=(0, 3)))
+                d(f"sensors.{c}.{s}.flip", describe(
+                    f"Flip of the {c} {s} image after the rotation: none, lr (x -> -x) or "
+                    "ud (y -> -y).", constraints=" | ".join(FLIPS)))
+        self._declare_guard_parameters(d)
+
+    @staticmethod
+    def _declare_guard_parameters(d) -> None:
+        """The input guards' parameters (docs/reliability.md)."""
+        d("max_pending_mb", describe(
+            "Memory [MB] the decoded images waiting for their partners may hold; beyond it "
+            "the oldest is dropped first, counted and reported (memory_limit).",
+            fp_range=(1.0, 65536.0)))
+        d("max_future_s", describe(
+            "Refuse an image stamped more than this ahead of the node's clock [s] "
+            "(future_stamp); 0 = no limit.", fp_range=(0.0, 1e6)))
+        d("log_throttle_s", describe(
+            "At most one log line per rejection reason per this period [s]; every rejection "
+            "is counted on /diagnostics; 0 = a line each.", fp_range=(0.0, 3600.0)))
+
+    @staticmethod
+    def _settings_from(get) -> EstimatorSettings:
+        return EstimatorSettings.from_params(get)
+
+    @staticmethod
+    def _orientation_from(corner: str, side: str, get) -> Orientation:
+        return Orientation(int(get(f"sensors.{corner}.{side}.rot90")),
+                           str(get(f"sensors.{corner}.{side}.flip")))
+
+    def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+
+        def get(n):
+            return new[n] if n in new else self._param(n)
+
+        if any(n in new for n in _SETTINGS_PARAMS):
+            if get("solver") not in _SOLVERS:
+                return result(False, f"solver must be one of {_SOLVERS}, got {get('solver')!r}")
+            try:
+                validate_settings(self._settings_from(get))
+            except ConfigError as exc:
+                return result(False, str(exc))
+            except Exception as exc:  # noqa: BLE001 - a bad value is refused, never raised
+                return result(False, f"{type(exc).__name__}: {exc}")
+        if "input_mode" in new and new["input_mode"] not in _INPUT_MODES:
+            return result(False, f"input_mode must be one of {_INPUT_MODES}, got "
+                                 f"{new['input_mode']!r}")
+        for n, v in new.items():
+            if n.startswith("sensors.") and n.endswith(".flip") and v not in FLIPS:
+                return result(False, f"{n} must be one of {FLIPS}, got {v!r}")
+            bad = string_param_problem(n, v, MAX_STRING_PARAM_LEN)
+            if bad is not None:
+                return result(False, bad)
+        return result(True)
+
+    def _apply_parameters(self, params: Sequence[Parameter]) -> None:
+        names = {p.name for p in params}
+        with self._lock:
+            if "pairing_tolerance_s" in names:
+                tol = int(round(self._param("pairing_tolerance_s") * 1e9))
+                self.pairing.tolerance_ns = tol
+                if self.assembler is not None:
+                    self.assembler.tolerance_ns = tol
+            if "visit_timeout_s" in names:
+                self.pairing.timeout_s = self._param("visit_timeout_s")
+                if self.assembler is not None:
+                    self.assembler.timeout_s = self._param("visit_timeout_s")
+            if "frame_id" in names:
+                self.frame_id = self._param("frame_id")
+            for c in self.corners:
+                for s in SIDES:
+                    if any(n.startswith(f"sensors.{c}.{s}.") for n in names):
+                        self.orientations[(c, s)] = self._orientation_from(c, s, self._param)
+            if names & set(_SETTINGS_PARAMS):
+                self.settings = self._settings_from(self._param)
+                if names & (set(_SETTINGS_PARAMS) - {"seeing_fwhm_arcsec"}):
+                    self.get_logger().info(f"estimator settings now {self.settings}; "
+                                           "re-warming")
+                    self._start_warm_up()
+                else:
+                    # The seeing may follow the seeing monitor visit by visit: the workers'
+                    # caches stay valid (the blur reference is cached per seeing).
+                    self.get_logger().info(f"seeing now {self.settings.seeing_fwhm_arcsec:g}"
+                                           " arcsec FWHM")
+
+    # ------------------------------------------------------------------ warm-up
+    def _start_warm_up(self) -> None:
+        with self._lock:
+            self._warm_generation += 1
+            gen = self._warm_generation
+            self._warm = {}
+        t0 = time.monotonic()
+        for c in self.corners:
+            self._warm_corner(c, gen, t0, attempt=1)
+
+    def _warm_corner(self, corner: str, gen: int, t0: float, attempt: int) -> None:
+        (f,) = self.pool.warm_up({corner: (self.fields[corner]["intra"],
+                                           self.fields[corner]["extra"])}, self.settings)
+        f.add_done_callback(lambda f: self._warm_done(f, corner, gen, t0, attempt))
+
+    def _warm_done(self, f: Future, corner: str, gen: int, t0: float, attempt: int) -> None:
+        try:
+            info = f.result()
+        except BaseException as exc:  # noqa: BLE001
+            info = {"corner": corner, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        cancelled = f.cancelled()  # the pool is shutting down: nothing to retry
+        if not info.get("ok") and attempt < _WARM_ATTEMPTS and not cancelled:
+            # A worker that died during its warm-up (killed, out of memory) is restarted by
+            # the next job it is given: warm it again rather than report ERROR for good.
+            with self._lock:
+                current = gen == self._warm_generation
+            if current:
+                self.get_logger().warning(f"warm-up of {corner} failed ({info.get('error')}); "
+                                          f"retrying ({attempt + 1}/{_WARM_ATTEMPTS})")
+                try:
+                    self._warm_corner(corner, gen, t0, attempt + 1)
+                    return
+                except Exception as exc:  # noqa: BLE001 - e.g. the pool is shut down
+                    info = {"corner": corner, "ok": False,
+                            "error": f"{type(exc).__name__}: {exc}"}
+        with self._lock:
+            if gen != self._warm_generation:
+                return
+            self._warm[corner] = info
+            done = len(self._warm) == len(self.corners)
+        if not info.get("ok"):
+            self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
+        if done:
+            self.get_logger().info(f"workers warm after {time.monotonic() - t0:.2f} s")
+
+    @property
+    def ready(self) -> bool:
+        """All served corners have warm worker caches."""
+        with self._lock:
+            return len(self._warm) == len(self.corners) and all(
+                w.get("ok") for w in self._warm.values())
+
+    # ------------------------------------------------------------------ images
+    def _image_callback(self, corner: str, side: str):
+        def cb(msg: Image, info=None) -> None:
+            try:
+                gap = self.image_gaps[(corner, side)].note(info) if info is not None else 0
+                if gap:
+                    self._reject(Rejection(
+                        "queue_dropped", f"{gap} {side} image(s) of {corner} never taken: "
+                        "the queue overflowed (a burst faster than the node takes them)",
+                        corner, side), warn=True)
+                self._on_image(msg, corner, side)
+            except Exception as exc:  # noqa: BLE001 - never let a message kill the node
+                self._reject(Rejection("internal_error", f"{corner} {side} image: "
+                                       f"{type(exc).__name__}: {exc}", corner, side))
+        return cb
+
+    def _on_image(self, msg: Image, corner: str, side: str) -> None:
+        bad = stamp_problem(msg.header.stamp)
+        if bad is not None:  # no output could carry this stamp: refused before pairing
+            self._reject(Rejection("bad_stamp", f"{side} image of {corner}: {bad}", corner,
+                                   side, 0), warn=True)
+            return
+        guard = self._guard_image(msg, corner, side)
+        if guard is not None:
+            self._reject(guard, warn=True)
+            return
+        rec = image_record_from_msg(msg, corner, side, time.monotonic())
+        if rec.error:
+            self._reject(Rejection(rec.error.split(":", 1)[0], f"{side} image of {corner}: "
+                                   f"{rec.error}", corner, side, rec.stamp_ns), warn=True)
+        with self._lock:
+            self.stats["images"] += 1
+            pair, rej = self.pairing.add(rec)
+            dropped = self._bound_pending()
+        for r in dropped:
+            self._publish_unpaired(r)
+        if rej is not None:
+            self._reject(rej, warn=True)
+            if rej.reason == "conflicting_images":
+                self._on_conflict(rej)
+        if pair is not None:
+            self._process_pair(pair)
+
+    def _guard_image(self, msg: Image, corner: str, side: str) -> Rejection | None:
+        """Refusals before decoding: a stamp too far ahead of the clock, a frame_id naming
+        another corner or side (see :func:`frame_id_problem`)."""
+        t = stamp_to_ns(msg.header.stamp)
+        ahead = float(self._param("max_future_s"))
+        now = self.get_clock().now().nanoseconds
+        if ahead > 0 and now > 0 and t > now + ahead * 1e9:
+            return Rejection("future_stamp", f"{side} image of {corner}: stamped "
+                             f"{(t - now) / 1e9:.4g} s ahead of the clock (max_future_s "
+                             f"{ahead:g})", corner, side, t)
+        bad = frame_id_problem(str(msg.header.frame_id), corner, side)
+        if bad is not None:
+            return Rejection("frame_mismatch", f"{side} image of {corner}: {bad}", corner,
+                             side, t)
+        return None
+
+    def _bound_pending(self) -> list[Rejection]:
+        """Drop the oldest waiting images while they hold more than ``max_pending_mb``
+        (called with the lock held)."""
+        limit = float(self._param("max_pending_mb")) * 1e6
+        out = []
+        while self.pairing.pending_bytes() > limit:
+            r = self.pairing.drop_oldest()
+            if r is None:
+                break
+            out.append(r)
+        return out
+
+    def _on_conflict(self, rej: Rejection) -> None:
+        """Two different images for one corner, side and stamp: the corner's visit is
+        invalid. Found while the first waited, the pairing closed the visit: publish the
+        corner invalid now. Found after pairing: the estimate in flight is published
+        invalid (:meth:`_publish_outcome`), or, already published, the corner is made
+        invalid in its visit if that is still being assembled."""
+        c, t = rej.corner, rej.stamp_ns
+        with self._lock:
+            paired = self.pairing.was_paired(c, t)
+        if not paired:
+            self._publish_unpaired(Rejection("conflicting_images", rej.message, c, rej.side,
+                                             t), count=False)
+            return
+        with self._lock:
+            self._conflicts[(c, t)] = rej.message
+            while len(self._conflicts) > 256:
+                self._conflicts.popitem(last=False)
+            done, vec = ((False, None) if self.assembler is None else
+                         self.assembler.invalidate(c, t, f"conflicting_images: {rej.message}"))
+        if vec is not None:
+            self._publish_vector(vec)
+
+    def _conflict_of(self, corner: str, stamp_ns: int) -> str | None:
+        with self._lock:
+            tol = self.pairing.tolerance_ns
+            for (c, t), m in self._conflicts.items():
+                if c == corner and abs(t - stamp_ns) <= tol:
+                    return m
+        return None
+
+    def _process_pair(self, pair: PairReady) -> None:
+        c = pair.corner
+        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
+        with self._lock:
+            self.stats["pairs"] += 1
+            settings = self.settings
+            oi, oe = self.orientations[(c, "intra")], self.orientations[(c, "extra")]
+        if pair.error is not None:
+            tag = (pair.intra.error or pair.extra.error or "bad_image").split(":", 1)[0]
+            self._publish_outcome(invalid_outcome(c, pair.stamp_ns, tag, pair.error, fi, fe,
+                                                  settings.solver), count=False)
+            return
+        if self._is_frame_pair(pair.intra.image, pair.extra.image):
+            from cwfs_ros.frames.selection import CornerFrameJob
+
+            with self._lock:
+                self.stats["frame_pairs"] += 1
+            fut = self.pool.submit_frames(CornerFrameJob(
+                c, pair.stamp_ns, pair.intra.image, pair.extra.image, settings,
+                sensor_config=str(self._param("sensor_config")),
+                selection_config=str(self._param("selection_config"))))
+        else:
+            job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
+                            settings, oi, oe)
+            fut = self.pool.submit(job)
+        fut.add_done_callback(self._on_future)
+
+    def _is_frame_pair(self, intra: np.ndarray, extra: np.ndarray) -> bool:
+        """Frames (several stars, detection needed) or stamps (one donut each)?"""
+        mode = str(self._param("input_mode"))
+        if mode != "auto":
+            return mode == "frames"
+        side = int(self._param("frame_min_side_px"))
+        return max(*np.shape(intra), *np.shape(extra)) >= side
+
+    def _on_future(self, f: Future) -> None:
+        try:
+            self._publish_outcome(f.result())
+        except Exception as exc:  # noqa: BLE001
+            self._publish_failed(exc)
+
+    def _publish_unpaired(self, r: Rejection, assemble: bool = True,
+                          count: bool = True) -> None:
+        """Report a half visit dropped unpaired (the pairing timeout, or its visit published
+        without it), and say so on the corner's topic. A failure to publish is reported, not
+        raised, so that it does not stop the others of the same pass. ``count``: False when
+        ``r`` was already counted."""
+        if count:
+            self._reject(r, warn=True)
+        f = self.fields[r.corner]
+        try:
+            self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
+                                                  f["intra"], f["extra"], self.settings.solver),
+                                  count=False, assemble=assemble)
+        except Exception as exc:  # noqa: BLE001
+            self._publish_failed(exc)
+
+    def _publish_failed(self, exc: BaseException) -> None:
+        """A corner result that could not be published: counted and reported like any
+        rejection (the log alone would leave /diagnostics saying all is well)."""
+        self.get_logger().error(f"publishing a corner result failed: {exc}")
+        self._reject(Rejection("publish_failed", f"a corner result could not be published: "
+                               f"{type(exc).__name__}: {exc}"))
+
+    def _publish_outcome(self, out: CornerOutcome, count: bool = True,
+                         assemble: bool = True) -> None:
+        """Publish a corner's result (and assemble it, unless ``assemble`` is False: its visit
+        was already published). ``count``: count an invalid one as a rejection (False when
+        its cause was already counted, e.g. a decoding error).
+
+        The message's frame_id is the ``frame_id`` parameter, never the images' own: the
+        Zernikes are in the focal-plane frame whatever frame the camera names its images in.
+        """
+        c = out.corner
+        conflict = self._conflict_of(c, out.stamp_ns) if out.valid else None
+        if conflict is not None:
+            f = self.fields[c]
+            out = invalid_outcome(c, out.stamp_ns, "conflicting_images", conflict,
+                                  f["intra"], f["extra"], out.solver)
+            count = False
+        with self._lock:
+            self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
+            self.last_compute_ms[c] = out.compute_ms
+            self.last_status[c] = out.status
+        if not out.valid and count:
+            self._reject(Rejection(out.reason or "invalid", f"{c}: {out.status}", c, "",
+                                   out.stamp_ns), warn=True)
+        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
+        msg = corner_wavefront_msg(out, field_intra_deg=fi, field_extra_deg=fe,
+                                   frame_id=self.frame_id)
+        self.pub_corner[c].publish(msg)
+        if self.assembler is not None and assemble:
+            self._assemble(corner_entry_from_outcome(out))
+
+    # ------------------------------------------------------------------ assembly
+    def _remote_corner_callback(self, corner: str):
+        """The callback of another producer's ``corner`` topic: a message must be about the
+        corner of the topic it came on.  One claiming another corner (a misconfigured or
+        wrongly remapped producer) would fill that corner's slot, possibly one this node
+        serves itself, with a wavefront measured elsewhere: it is rejected."""
+        def on_msg(msg: CornerWavefront) -> None:
+            try:
+                bad = stamp_problem(msg.header.stamp)
+                if bad is not None:
+                    self._reject(Rejection("bad_stamp", f"a CornerWavefront of {corner}: {bad}",
+                                           corner, "", 0), warn=True)
+                    return
+                if msg.corner != corner:
+                    self._reject(Rejection(
+                        "corner_mismatch", f"a CornerWavefront on {corner}'s topic claims corner "
+                        f"{msg.corner!r}: not assembled", corner, "",
+                        stamp_to_ns(msg.header.stamp)), warn=True)
+                    return
+                entry = corner_entry_from_msg(msg)
+                checked = checked_entry(entry)
+                if msg.valid and not checked.valid:
+                    # Assembled as invalid (its corner is then left out of the solve), and
+                    # reported: a producer sending unusable results flagged valid is broken.
+                    self._reject(Rejection("bad_corner_wavefront", f"a CornerWavefront of "
+                                           f"{corner} flagged valid: {checked.status}", corner,
+                                           "", entry.stamp_ns), warn=True)
+                self._assemble(checked)
+            except Exception as exc:  # noqa: BLE001 - a message must never crash the node
+                self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
+        return on_msg
+
+    def _assemble(self, entry: CornerEntry) -> None:
+        with self._lock:
+            vec, rej = self.assembler.add(entry, time.monotonic())
+        if rej is not None:
+            self._reject(rej, warn=True)
+        if vec is not None:
+            self._publish_vector(vec)
+
+    def _publish_vector(self, vec: VisitVector) -> None:
+        with self._lock:
+            self.stats["visits_published"] += 1
+            if not vec.complete:
+                self.stats["visits_incomplete"] += 1
+            # Local corners that never produced a pair for this visit: close them, so that a
+            # late image is reported as late instead of starting a new visit.
+            closures = []
+            for c, st in zip(vec.corners, vec.statuses, strict=True):
+                if c in self.corners and st.startswith("missing"):
+                    closures += self.pairing.close(c, vec.stamp_ns, "visit published without it")
+        for r in closures:
+            # The vector already holds the corner as missing: not assembled again.
+            self._publish_unpaired(r, assemble=False)
+        if not vec.complete:
+            with self._lock:
+                self.last_incomplete = (time.monotonic(), f"visit {vec.stamp_ns}: {vec.status}")
+            self.get_logger().warning(f"visit {vec.stamp_ns} published incomplete: {vec.status}")
+        self.pub_vector.publish(wavefront_vector_msg(vec, self.frame_id))
+
+    def _expire(self) -> None:
+        try:
+            self._expire_now()
+        except Exception as exc:  # noqa: BLE001 - a timer callback must not kill the node
+            self._reject(Rejection("internal_error", f"visit timeout handling: "
+                                   f"{type(exc).__name__}: {exc}"), warn=True)
+
+    def _expire_now(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            unpaired = self.pairing.expire(now)
+        for r in unpaired:
+            self._publish_unpaired(r)
+        if self.assembler is not None:
+            with self._lock:
+                due = self.assembler.expire(now)
+            for vec in due:
+                self._publish_vector(vec)
+
+    # ------------------------------------------------------------------ diagnostics
+    def _reject(self, rej: Rejection, warn: bool = False) -> None:
+        self.rejected.add(rej.reason, rej.message)
+        if warn:
+            due, n = self.rejected.log_due(rej.reason, float(self._param("log_throttle_s")))
+            if due:
+                more = f" (+{n} more of this reason not logged)" if n else ""
+                self.get_logger().warning(f"rejected ({rej.reason}): {rej.message}{more}")
+
+    def diagnostics(self):
+        with self._lock:
+            warm = dict(self._warm)
+            stats = dict(self.stats)
+            pending_images = self.pairing.pending_count()
+            pending_visits = self.assembler.pending_count() if self.assembler else 0
+            compute = dict(self.last_compute_ms)
+            last = dict(self.last_status)
+            incomplete = self.last_incomplete
+            pending_mb = self.pairing.pending_bytes() / 1e6
+        self.foreign = foreign_publishers(self, self._owned_topics())
+        failed = [w for w in warm.values() if not w.get("ok")]
+        if failed:
+            level, state = ERROR, "error"
+            message = "warm-up failed: " + "; ".join(f"{w['corner']}: {w.get('error')}"
+                                                      for w in failed)
+        elif len(warm) < len(self.corners):
+            level, state = WARN, "warming"
+            message = f"warming up workers ({len(warm)}/{len(self.corners)} corners ready)"
+        elif self.qos_events.problem() is not None:
+            level, state = ERROR, "ready"
+            message = f"QoS: {self.qos_events.problem()}"
+        elif self.foreign:
+            level, state = WARN, "ready"
+            message = f"ready; another publisher on a topic of this node: {self.foreign[0]}"
+        elif self.rejected.recent(10.0):
+            level, state = WARN, "ready"
+            message = f"ready; recently rejected input: {self.rejected.last_message}"
+        elif incomplete is not None and time.monotonic() - incomplete[0] < 60.0:
+            level, state = WARN, "ready"
+            message = f"ready; a recent visit was published incomplete: {incomplete[1]}"
+        else:
+            level, state, message = OK, "ready", "ready"
+        values = [("state", state), ("corners", " ".join(self.corners)),
+                  ("workers", self.pool.n_workers), ("worker_restarts", self.pool.restarts),
+                  ("assemble", self.assemble), ("settings", str(self.settings)),
+                  *stats.items(), ("pending_images", pending_images),
+                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
+                  ("max_pending_mb", self._param("max_pending_mb")),
+                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
+        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
+        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
+        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
+                   sorted(warm.items())]
+        values += self.rejected.key_values()
+        values += self.qos_events.key_values()
+        return diagnostic_status(f"{self.get_name()}: wavefront estimation", level, message,
+                                 values, hardware_id="cwfs_corner_sensors")
+
+    def _owned_topics(self) -> list[str]:
+        out = [corner_topic(c) for c in self.corners]
+        return out + [VECTOR_TOPIC] if self.assemble else out
+
+    def publish_diagnostics(self) -> None:
+        try:
+            arr = diagnostics_array(self.get_clock().now().to_msg(), [self.diagnostics()])
+            self.pub_diag.publish(arr)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"diagnostics failed: {exc}")
+
+    def destroy_node(self) -> None:
+        self.pool.shutdown(wait=False)
+        super().destroy_node()
+
+
+_CORNER_RE = re.compile(r"(?<![0-9A-Za-z])R(00|04|40|44)(?![0-9])", re.IGNORECASE)
+# LSST names the corner wavefront half-chips SW0 (extra-focal) and SW1 (intra-focal).
+_SIDE_WORDS = {"intra": "intra", "extra": "extra", "sw0": "extra", "sw1": "intra"}
+_SIDE_RE = re.compile(r"(?<![0-9A-Za-z])(intra|extra|sw0|sw1)(?![0-9A-Za-z])", re.IGNORECASE)
+
+
+def frame_id_problem(frame_id: str, corner: str, side: str) -> str | None:
+    """Why an image's ``frame_id`` contradicts its topic's corner and side, or None.
+
+    An empty frame_id, or one naming no corner and no side (``focal_plane``), says nothing
+    and is taken. One naming a corner (``R00`` .. ``R44``, as a word) must name the topic's
+    corner only; one naming a side (``intra``/``extra``, or LSST's ``SW1``/``SW0``) must name
+    the topic's side only.
+    """
+    if not frame_id:
+        return None
+    corners = {"R" + m.group(1) for m in _CORNER_RE.finditer(frame_id)}
+    if corners and corners != {corner}:
+        return (f"frame_id {frame_id[:80]!r} names {', '.join(sorted(corners))}, not the "
+                f"topic's corner {corner}")
+    sides = {_SIDE_WORDS[m.group(1).lower()] for m in _SIDE_RE.finditer(frame_id)}
+    if sides and sides != {side}:
+        return (f"frame_id {frame_id[:80]!r} names the {', '.join(sorted(sides))} side, not "
+                f"the topic's {side}")
+    return None
+
+
+def main(args: list[str] | None = None) -> int:
+    """``wavefront_node [--ros-args ...]``: run this node alone (parameters: config/params.yaml)."""
+    from cwfs_ros.ros.launch import run_node_main
+
+    return run_node_main(NODE_NAME, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,472 @@
+"""Run the per-corner wavefront estimates in parallel worker processes (no ROS imports).
+
+The estimator is numpy code that holds the GIL most of the time, so the four corners of a
+visit run in separate *processes*. :class:`CornerPool` keeps ``n_workers`` single-process
+executors ("slots") and pins every corner to one slot (round robin), so that the geometry cache
+of :func:`cwfs_ros.wfs.estimator.pair_geometry` (~0.3-1 s to build per corner, ~25 ms per
+estimate once built) stays warm in the worker that serves the corner. :meth:`CornerPool.warm_up`
+builds those caches at start by estimating a synthetic donut pair per corner.
+
+Workers are started with the ``forkserver`` method (``spawn`` where it is unavailable): the
+parent may be a ROS process with middleware threads, which must not be ``fork()``-ed. The fork
+server pre-imports the estimator, so a worker is ready in well under a second.
+
+Everything that crosses the process boundary is a small picklable dataclass: a
+:class:`CornerJob` in, a :class:`CornerOutcome` out. A job never raises in the worker: bad
+images and configuration come back as an invalid outcome whose ``status`` names the problem.
+"""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing as mp
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cwfs_ros.errors import ConfigError, CwfsError
+from cwfs_ros.layout import NOLL as _NOLL
+from cwfs_ros.wfs.orientation import Orientation, orient_image, pad_stamp
+from cwfs_ros.wfs.settings import EstimatorSettings
+
+__all__ = [
+    "CornerJob",
+    "CornerOutcome",
+    "CornerPool",
+    "invalid_outcome",
+    "frame_outcome",
+    "run_corner_job",
+    "run_frame_job",
+    "synthetic_donut",
+    "warm_corner",
+]
+
+
+
+@dataclass(frozen=True)
+class CornerJob:
+    """One corner's pair for one visit, as decoded from the two image messages."""
+
+    corner: str
+    stamp_ns: int
+    intra: np.ndarray
+    extra: np.ndarray
+    field_intra_deg: tuple[float, float]
+    field_extra_deg: tuple[float, float]
+    settings: EstimatorSettings
+    orient_intra: Orientation = Orientation()
+    orient_extra: Orientation = Orientation()
+
+
+@dataclass(frozen=True)
+class CornerOutcome:
+    """Result of a :class:`CornerJob` (what a ``CornerWavefront`` carries).
+
+    Attributes:
+        zernikes_nm: (19,) Z4..Z22 in nm (NaN when not valid).
+        status: ``"ok"`` or ``"<tag>: <explanation>"``.
+        reason: the tag alone (``""`` when valid), for counting.
+        field_deg: field of the estimate (mid-point of the two half-chips), degrees.
+        compute_ms: wall time spent in the worker, ms.
+        uncertainty_nm: (19,) one-sigma per term in nm, or ``None`` when not estimated;
+            a stamp pair gives the calibrated noise model's (:func:`stamp_uncertainty_nm`),
+            frames the pairs' combination's.
+        n_pairs: donut pairs combined (1 for a stamp pair; 0 when none was usable).
+    """
+
+    corner: str
+    stamp_ns: int
+    valid: bool
+    status: str
+    reason: str
+    zernikes_nm: np.ndarray
+    field_deg: tuple[float, float]
+    caustic: bool = False
+    converged: bool = False
+    iterations: int = 0
+    compute_ms: float = 0.0
+    solver: str = ""
+    worker_pid: int = 0
+    noll: tuple[int, ...] = field(default=_NOLL)
+    uncertainty_nm: np.ndarray | None = None
+    n_pairs: int = 1
+
+
+def _mid(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    return (0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1]))
+
+
+def invalid_outcome(corner: str, stamp_ns: int, reason: str, message: str,
+                    field_intra: tuple[float, float], field_extra: tuple[float, float],
+                    solver: str = "", compute_ms: float = 0.0) -> CornerOutcome:
+    """An invalid outcome whose status is ``"<reason>: <message>"``."""
+    status = message if message.startswith(reason + ":") else f"{reason}: {message}"
+    return CornerOutcome(corner, int(stamp_ns), False, status, reason,
+                         np.full(len(_NOLL), np.nan), _mid(field_intra, field_extra),
+                         solver=solver, compute_ms=compute_ms, worker_pid=os.getpid())
+
+
+def _shapes(job: CornerJob) -> str:
+    out = []
+    for side, a in (("intra", job.intra), ("extra", job.extra)):
+        shp = np.shape(a)
+        out.append(f"{side} {shp[1]}x{shp[0]}" if len(shp) == 2 else f"{side} {shp}")
+    return ", ".join(out)
+
+
+def run_corner_job(job: CornerJob) -> CornerOutcome:
+    """Estimate one corner (runs in a worker process; never raises)."""
+    from cwfs_ros.wfs.estimator import estimate_wavefront
+
+    t0 = time.perf_counter()
+    s = job.settings
+
+    def fail(reason: str, message: str) -> CornerOutcome:
+        return invalid_outcome(job.corner, job.stamp_ns, reason, message, job.field_intra_deg,
+                               job.field_extra_deg, s.solver,
+                               (time.perf_counter() - t0) * 1e3)
+
+    try:
+        intra = pad_stamp(orient_image(np.asarray(job.intra, dtype=np.float64),
+                                       job.orient_intra), s.pad_px)
+        extra = pad_stamp(orient_image(np.asarray(job.extra, dtype=np.float64),
+                                       job.orient_extra), s.pad_px)
+        res = estimate_wavefront(intra, extra, field_intra_deg=job.field_intra_deg,
+                                 field_extra_deg=job.field_extra_deg,
+                                 **s.estimator_kwargs())
+    except CwfsError as exc:
+        reason = getattr(exc, "reason", None) or ("config" if isinstance(exc, ConfigError)
+                                                  else "bad_image")
+        msg = str(exc)
+        if s.pad_px > 0 and not isinstance(exc, ConfigError):
+            msg += (f" (received stamps {_shapes(job)} px, padded by {s.pad_px} px on each "
+                    "side)")
+        return fail(str(reason), msg)
+    except Exception as exc:  # noqa: BLE001 - a worker must report, not die
+        return fail("internal_error", f"{type(exc).__name__}: {exc}")
+    z = np.asarray(res.zernikes_nm, dtype=np.float64)
+    ms = (time.perf_counter() - t0) * 1e3
+    if res.iterations < 1:
+        return fail("caustic", "the compensation folded into caustic at the first outer "
+                    "iteration: no estimate (defocus too small for this wavefront?)")
+    if z.shape != (len(_NOLL),) or not np.all(np.isfinite(z)):
+        return fail("non_finite_estimate", "the estimator returned NaN/Inf Zernikes")
+    return CornerOutcome(job.corner, int(job.stamp_ns), True, "ok", "", z,
+                         tuple(float(v) for v in res.field_deg), bool(res.caustic),
+                         bool(res.converged), int(res.iterations), ms, res.solver,
+                         os.getpid(), uncertainty_nm=stamp_uncertainty_nm(res, s.solver),
+                         n_pairs=1)
+
+
+def stamp_uncertainty_nm(res: Any, solver: str) -> np.ndarray | None:
+    """(19,) one-sigma of a single stamp pair's terms (nm), from the donuts' S/N and the
+    noise model that the frame combination uses (``combination`` of config/selection.yaml,
+    fitted on simulations): ``sqrt((c_j q)^2 + f_j^2)``. None when it cannot be had."""
+    from cwfs_ros.frames.combination import pair_noise_scale, pair_sigma_nm
+
+    try:
+        cfg = _combination_config(solver)
+        q = pair_noise_scale(float(res.inputs["intra"].snr), float(res.inputs["extra"].snr))
+        sig = pair_sigma_nm(np.array([q]), cfg)[0]
+    except Exception:  # noqa: BLE001 - an uncertainty must not cost the estimate
+        return None
+    return sig if sig.shape == (len(_NOLL),) and np.all(np.isfinite(sig)) else None
+
+
+@functools.lru_cache(maxsize=4)
+def _combination_config(solver: str) -> Any:
+    from cwfs_ros.frames.selection import load_selection_config
+
+    return load_selection_config(None, solver=solver).combination
+
+
+def frame_outcome(res: Any) -> CornerOutcome:
+    """A :class:`CornerOutcome` from a :class:`~cwfs_ros.frames.selection.CornerFrameResult`."""
+    z = np.asarray(res.zernikes_nm, dtype=np.float64)
+    unc = np.asarray(res.uncertainty_nm, dtype=np.float64)
+    ms = float(res.timing_ms.get("total", 0.0))
+    if not res.valid:
+        return CornerOutcome(res.corner, int(res.stamp_ns), False, res.status, res.reason,
+                             np.full(len(_NOLL), np.nan), tuple(res.field_deg),
+                             caustic=bool(res.caustic), compute_ms=ms, solver=res.solver,
+                             worker_pid=res.worker_pid, uncertainty_nm=None,
+                             n_pairs=int(res.n_pairs))
+    if z.shape != (len(_NOLL),) or not np.all(np.isfinite(z)):
+        return invalid_outcome(res.corner, res.stamp_ns, "non_finite_estimate",
+                               "the frame combination returned NaN/Inf Zernikes",
+                               tuple(res.field_deg), tuple(res.field_deg), res.solver, ms)
+    return CornerOutcome(res.corner, int(res.stamp_ns), True, res.summary(), "", z,
+                         tuple(float(v) for v in res.field_deg), bool(res.caustic),
+                         bool(res.converged), int(res.iterations), ms, res.solver,
+                         res.worker_pid,
+                         uncertainty_nm=unc, n_pairs=int(res.n_pairs))
+
+
+def run_frame_job(job: Any) -> CornerOutcome:
+    """Estimate one corner from its two frames (runs in a worker process; never raises)."""
+    from cwfs_ros.frames.selection import run_corner_frame_job
+
+    return frame_outcome(run_corner_frame_job(job))
+
+
+def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.ndarray:
+    """A flat annulus in a square stamp: enough to build and exercise the estimator caches."""
+    n = int(stamp_px)
+    yy, xx = np.mgrid[0:n, 0:n] - (n - 1) / 2.0
+    r = np.hypot(xx, yy)
+    img = ((r <= radius_px) & (r >= obscuration * radius_px)).astype(np.float64) * 100.0
+    return img + 1.0
+
+
+def warm_corner(corner: str, field_intra_deg: tuple[float, float],
+                field_extra_deg: tuple[float, float], settings: EstimatorSettings,
+                stamp_px: int = 0) -> dict:
+    """Build the estimator caches of one corner in this (worker) process.
+
+    Estimates a synthetic annulus pair once: that builds the pair geometry (the slow part) and
+    runs every code path of an estimate. The result of that estimate is irrelevant; errors are
+    reported, not raised.
+    """
+    from cwfs_ros.wfs.estimator import estimate_wavefront, load_algorithm, pair_geometry
+    from cwfs_ros.wfs.instrument import load_instrument
+
+    t0 = time.perf_counter()
+    try:
+        inst = load_instrument(settings.instrument)
+        n = int(stamp_px) if stamp_px else int(inst.stamp_size_px)
+        algo = load_algorithm(settings.solver, **({"outer_iterations": settings.outer_iterations}
+                                                   if settings.outer_iterations > 0 else {}))
+        geom = pair_geometry(inst, settings.band, inst.wavelength_nm(settings.band, None),
+                             tuple(field_intra_deg), tuple(field_extra_deg),
+                             inst.defocal_offset_mm, algo)
+        img = synthetic_donut(n + 2 * settings.pad_px, 0.92 * geom.outer_radius_px,
+                              inst.obscuration)
+        t1 = time.perf_counter()
+        try:
+            estimate_wavefront(img, img, field_intra_deg=field_intra_deg,
+                               field_extra_deg=field_extra_deg, **settings.estimator_kwargs())
+        except CwfsError:
+            pass  # the synthetic pair may be rejected; the caches are built regardless
+        return {"corner": corner, "ok": True, "pid": os.getpid(),
+                "geometry_s": t1 - t0, "total_s": time.perf_counter() - t0, "error": ""}
+    except Exception as exc:  # noqa: BLE001
+        return {"corner": corner, "ok": False, "pid": os.getpid(),
+                "geometry_s": 0.0, "total_s": time.perf_counter() - t0,
+                "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _worker_init(owner_pid: int = 0) -> None:
+    """Worker start-up: one BLAS/OpenMP thread per worker (the pool is the parallelism; n
+    workers x n BLAS threads would oversubscribe the cores), and :func:`die_with_owner`."""
+    die_with_owner(owner_pid)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)  # every thread pool, whatever the environment says
+
+
+# How often a worker checks that the process owning its pool is alive [s].
+OWNER_POLL_S = 0.5
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_owner(owner_pid: int) -> None:
+    """Make this worker process end with the process that owns its pool (run in the worker).
+
+    A node killed outright (SIGKILL, the OOM killer) runs no clean-up, and its workers would
+    live on holding their memory. Two guards: ``PR_SET_PDEATHSIG`` (Linux) sends SIGKILL when
+    the worker's parent dies (the fork server, which exits with the node); a daemon thread
+    exits the worker once ``owner_pid`` is gone, polled every :data:`OWNER_POLL_S` s (the
+    parent of a fork-server worker is not the node). SIGINT is ignored: Ctrl-C reaches the
+    whole process group, and the node, not each worker, shuts the pool down (without the
+    workers' KeyboardInterrupt tracebacks).
+    """
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except (ValueError, OSError):  # not the main thread: leave it
+        pass
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except Exception:  # noqa: BLE001, S110 - not Linux: the watchdog alone
+        pass
+    if owner_pid > 0:
+        threading.Thread(target=_watch_owner, args=(int(owner_pid),), daemon=True,
+                         name="owner_watchdog").start()
+
+
+def _watch_owner(owner_pid: int) -> None:
+    while True:
+        time.sleep(OWNER_POLL_S)
+        try:
+            os.kill(owner_pid, 0)
+        except ProcessLookupError:
+            os._exit(0)
+        except OSError:  # EPERM: the pid exists (reused by another user's process)
+            os._exit(0)
+
+
+def guard_pool_workers(pool: Any) -> Any:
+    """Give an existing ``ProcessPoolExecutor`` (whose workers are not started yet) the
+    :func:`die_with_owner` start-up, chained before its own initializer. Returns ``pool``.
+
+    For pools built elsewhere (the camera simulator's render pool); relies on CPython's
+    ``_initializer`` / ``_initargs`` attributes and leaves a pool without them unchanged.
+    """
+    if pool is None or not hasattr(pool, "_initializer"):
+        return pool
+    pool._initargs = (os.getpid(), pool._initializer, tuple(pool._initargs or ()))
+    pool._initializer = _chained_init
+    return pool
+
+
+def _chained_init(owner_pid: int, inner: Callable | None, args: tuple) -> None:
+    die_with_owner(owner_pid)
+    if inner is not None:
+        inner(*args)
+
+
+def _mp_context(method: str | None) -> mp.context.BaseContext:
+    methods = mp.get_all_start_methods()
+    name = method or ("forkserver" if "forkserver" in methods else "spawn")
+    if name not in methods:
+        raise ConfigError(f"start method {name!r} not available here ({methods})")
+    ctx = mp.get_context(name)
+    if name == "forkserver":
+        # Only effective before the fork server starts (once per process); harmless after.
+        ctx.set_forkserver_preload(["numpy", "scipy.ndimage", "cwfs_ros.wfs.estimator",
+                                    "cwfs_ros.runtime.corner_pool", "batoid"])
+    return ctx
+
+
+class CornerPool:
+    """Per-corner-affine process pool.
+
+    Args:
+        corners: the corners this pool serves; corner ``corners[i]`` runs in slot
+            ``i % n_workers``.
+        n_workers: worker processes (``0`` = ``min(len(corners), os.cpu_count())``).
+        start_method: multiprocessing start method (default ``forkserver``, else ``spawn``).
+    """
+
+    def __init__(self, corners: Sequence[str], n_workers: int = 0,
+                 start_method: str | None = None) -> None:
+        if not corners:
+            raise ConfigError("CornerPool needs at least one corner")
+        self.corners = tuple(corners)
+        n = int(n_workers) or min(len(self.corners), os.cpu_count() or 1)
+        self.n_workers = max(1, min(n, len(self.corners)))
+        self._ctx = _mp_context(start_method)
+        self._lock = threading.Lock()
+        self._slots: list[ProcessPoolExecutor | None] = [None] * self.n_workers
+        self.affinity = {c: i % self.n_workers for i, c in enumerate(self.corners)}
+        self.restarts = 0
+        self._closed = False
+
+    def _slot(self, i: int) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("CornerPool is shut down")
+            ex = self._slots[i]
+            if ex is None:
+                ex = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx,
+                                         initializer=_worker_init, initargs=(os.getpid(),))
+                self._slots[i] = ex
+            return ex
+
+    def _restart(self, i: int, broken: ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._slots[i] is broken:
+                self._slots[i] = None
+                self.restarts += 1
+        broken.shutdown(wait=False, cancel_futures=True)
+
+    def _submit_on(self, corner: str, fn: Callable, *args
+                   ) -> tuple[Future, ProcessPoolExecutor]:
+        """``fn(*args)`` on the corner's worker: its future, and the executor that runs it
+        (the one to restart if it breaks: by then the slot may hold a newer, healthy one)."""
+        i = self.affinity[corner]
+        ex = self._slot(i)
+        try:
+            return ex.submit(fn, *args), ex
+        except BrokenProcessPool:
+            self._restart(i, ex)
+            ex = self._slot(i)
+            return ex.submit(fn, *args), ex
+
+    def _submit(self, corner: str, fn: Callable, *args) -> Future:
+        return self._submit_on(corner, fn, *args)[0]
+
+    def submit(self, job: CornerJob) -> Future:
+        """Queue a job on its corner's worker. The future's result is a CornerOutcome.
+
+        If the worker process dies, the future resolves to an invalid outcome
+        (``worker_crashed``) and the slot is restarted for the next job.
+        """
+        return self._guarded(job.corner, job.stamp_ns, run_corner_job, job,
+                             (job.field_intra_deg, job.field_extra_deg), job.settings.solver)
+
+    def submit_frames(self, job: Any) -> Future:
+        """Queue a :class:`~cwfs_ros.frames.selection.CornerFrameJob` (two full half-chip
+        frames) on its corner's worker; the future's result is a :class:`CornerOutcome`
+        carrying the combination of every usable donut pair (``n_pairs``,
+        ``uncertainty_nm``). A dead worker gives ``worker_crashed``, as for :meth:`submit`.
+        """
+        nan_field = (float("nan"), float("nan"))
+        return self._guarded(job.corner, job.stamp_ns, run_frame_job, job,
+                             (nan_field, nan_field), job.settings.solver)
+
+    def _guarded(self, corner: str, stamp_ns: int, fn: Callable, job: Any,
+                 fields: tuple[tuple[float, float], tuple[float, float]],
+                 solver: str) -> Future:
+        """Run ``fn(job)`` on the corner's worker; a future of its CornerOutcome, or of an
+        invalid ``worker_crashed`` outcome (and a restarted slot) if the worker dies."""
+        if corner not in self.affinity:
+            raise ConfigError(f"corner {corner!r} is not served by this pool")
+        out: Future = Future()
+        inner, used = self._submit_on(corner, fn, job)
+        i = self.affinity[corner]
+
+        def done(f: Future) -> None:
+            try:
+                out.set_result(f.result())
+            except BaseException as exc:  # noqa: BLE001
+                if isinstance(exc, BrokenProcessPool):
+                    # The executor this job ran on, not the slot's current one: another
+                    # job's failure may already have replaced it with a healthy worker.
+                    self._restart(i, used)
+                out.set_result(invalid_outcome(
+                    corner, stamp_ns, "worker_crashed",
+                    f"the worker process failed ({type(exc).__name__}: {exc})",
+                    fields[0], fields[1], solver))
+
+        inner.add_done_callback(done)
+        return out
+
+    def warm_up(self, fields: dict[str, tuple[tuple[float, float], tuple[float, float]]],
+                settings: EstimatorSettings, stamp_px: int = 0) -> list[Future]:
+        """Start building each corner's caches in its worker; futures of :func:`warm_corner`.
+
+        ``fields`` maps corner -> (field_intra_deg, field_extra_deg).
+        """
+        return [self._submit(c, warm_corner, c, fi, fe, settings, stamp_px)
+                for c, (fi, fe) in fields.items() if c in self.affinity]
+
+    def shutdown(self, wait: bool = False) -> None:
+        """Stop the workers (queued jobs are cancelled)."""
+        with self._lock:
+            self._closed = True
+            slots, self._slots = self._slots, [None] * self.n_workers
+        for ex in slots:
+            if ex is not None:
+                ex.shutdown(wait=wait, cancel_futures=True)

@@ -1,0 +1,291 @@
+"""Raw image decoding with the checks only raw pixels allow (no ROS imports).
+
+A ``sensor_msgs/Image`` is a header plus ``height``, ``width``, ``encoding``,
+``is_bigendian``, ``step`` (bytes per row) and ``data``. :func:`decode_image` turns those
+fields into a 2-D float64 array ``[row, col]`` or raises :class:`ImageDecodeError` naming the
+problem (unsupported encoding, bad step, truncated data, ...). It does not judge the content
+(NaNs, flat or tiny images are the estimator's business, which raises its own
+:class:`~cwfs_ros.errors.ImageError`).
+
+Orienting a decoded stamp into the focal-plane frame is :mod:`cwfs_ros.wfs.orientation`.
+
+:func:`decode_checked` decodes and then judges what only the raw pixels can tell
+(:func:`inspect_pixels`): a byte order that disagrees with ``is_bigendian``, integer counts
+that wrapped instead of clipping, pixels at the converter's full scale, and float values whose
+scale no detector gives. The live node and the replay of a bag decode with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cwfs_ros.errors import ImageError
+
+__all__ = [
+    "ENCODINGS",
+    "ImageDecodeError",
+    "decode_checked",
+    "decode_image",
+    "inspect_pixels",
+]
+
+# Single-channel encodings accepted: name -> numpy base type (byte order set per message).
+# The ROS names (sensor_msgs/image_encodings.hpp) and their OpenCV-style aliases.
+ENCODINGS: dict[str, str] = {
+    "mono8": "u1", "8UC1": "u1", "8SC1": "i1",
+    "mono16": "u2", "16UC1": "u2", "16SC1": "i2",
+    "32SC1": "i4", "32FC1": "f4", "64FC1": "f8",
+}
+# A generous upper bound on a stamp side: corner donuts need ~160 px, full CCDs are 4k.
+MAX_SIDE_PX = 8192
+
+
+class ImageDecodeError(ImageError):
+    """The raw message fields do not describe a usable single-channel image.
+
+    ``reason`` is a short tag: ``unsupported_encoding``, ``bad_dimensions``, ``bad_step``,
+    ``truncated_data``, ``excess_data``, ``bad_data``; from :func:`inspect_pixels`:
+    ``byte_order``, ``wrapped``, ``saturated``, ``bad_scale``.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(f"{reason}: {message}")
+        self.reason = reason
+
+
+def decode_image(data: bytes | bytearray | memoryview | np.ndarray | list[int], *,
+                 height: int, width: int, encoding: str, step: int,
+                 is_bigendian: bool | int = False) -> np.ndarray:
+    """Decode raw ``sensor_msgs/Image`` fields into a float64 ``(height, width)`` array.
+
+    Args:
+        data: the pixel bytes (``bytes``, ``array.array('B')``, a uint8 numpy array, ...).
+        height, width: image size in pixels (rows, columns).
+        encoding: one of :data:`ENCODINGS` (single channel).
+        step: bytes per row, ``>= width * bytes_per_pixel`` (rows may be padded).
+        is_bigendian: byte order of multi-byte pixels.
+
+    Returns:
+        A new, writable float64 array ``[row, col]``; padding bytes at the end of each row are
+        dropped.
+
+    Raises:
+        ImageDecodeError: naming the problem. ``len(data)`` must be exactly ``step * height``.
+    """
+    base = ENCODINGS.get(str(encoding))
+    if base is None:
+        raise ImageDecodeError(
+            "unsupported_encoding",
+            f"encoding {encoding!r} is not supported; use a single-channel encoding: "
+            + ", ".join(ENCODINGS))
+    h, w, st = int(height), int(width), int(step)
+    if h < 1 or w < 1 or h > MAX_SIDE_PX or w > MAX_SIDE_PX:
+        raise ImageDecodeError("bad_dimensions",
+                               f"height x width = {h} x {w} must be within 1..{MAX_SIDE_PX}")
+    dtype = np.dtype(base).newbyteorder(">" if is_bigendian else "<")
+    row_bytes = w * dtype.itemsize
+    if st < row_bytes:
+        raise ImageDecodeError(
+            "bad_step", f"step {st} B is smaller than width {w} x {dtype.itemsize} B "
+            f"per {encoding} pixel = {row_bytes} B")
+    buf = _as_bytes(data)
+    need = st * h
+    if buf.size < need:
+        raise ImageDecodeError(
+            "truncated_data", f"{buf.size} B of data for step {st} x height {h} = {need} B")
+    if buf.size > need:
+        raise ImageDecodeError(
+            "excess_data", f"{buf.size} B of data for step {st} x height {h} = {need} B")
+    rows = buf.reshape(h, st)[:, :row_bytes]
+    return np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.float64)
+
+
+def decode_checked(data: bytes | bytearray | memoryview | np.ndarray | list[int], *,
+                   height: int, width: int, encoding: str, step: int,
+                   is_bigendian: bool | int = False) -> np.ndarray:
+    """:func:`decode_image`, then :func:`inspect_pixels` on the result (same arguments).
+
+    Raises:
+        ImageDecodeError: a layout problem, or one of the content reasons of
+            :func:`inspect_pixels`.
+    """
+    out = decode_image(data, height=height, width=width, encoding=encoding, step=step,
+                       is_bigendian=is_bigendian)
+    swapped = None
+    if np.dtype(ENCODINGS[str(encoding)]).itemsize > 1:
+        with np.errstate(all="ignore"):  # the wrong order may hold NaN, Inf, subnormals
+            swapped = decode_image(data, height=height, width=width, encoding=encoding,
+                                   step=step, is_bigendian=not is_bigendian)
+    inspect_pixels(out, str(encoding), swapped=swapped)
+    return out
+
+
+# A wrong byte order multiplies the pixel-to-pixel variation by about 256 (the noisy low
+# byte becomes the high one); the right order is never rougher than the wrong one for an
+# image whose noise is below ~20000 counts. Refused when the order as given is this many
+# times rougher than the other.
+BYTE_ORDER_RATIO = 8.0
+# Float images: the interquartile spread of log10|value| of a genuine image is a few decades;
+# read in the wrong order, tens (float32) to hundreds (float64).
+FLOAT_DECADES = 10.0
+# Float pixel values whose largest magnitude lies outside this range are no detector's
+# output in any unit, and their squares (noise, flux sums) underflow or overflow float64.
+SCALE_RANGE = (1e-150, 1e150)
+# Wrap steps: neighbours in the bottom and top WRAP_BAND of the type's range (a jump of more
+# than half of it); at least WRAP_MIN_PIXELS pixels on each side, so that a single hot pixel
+# next to the bias is not a wrap.
+WRAP_BAND = 0.25
+WRAP_MIN_PIXELS = 3
+
+
+def inspect_pixels(image: np.ndarray, encoding: str, *,
+                   swapped: np.ndarray | None = None) -> None:
+    """Refuse pixels that a decoder alone can tell are wrong; raise :class:`ImageDecodeError`.
+
+    Args:
+        image: the decoded image (float64) as the message declares it.
+        encoding: its encoding (a key of :data:`ENCODINGS`).
+        swapped: the same bytes decoded with the other byte order (multi-byte encodings);
+            None skips the byte-order test.
+
+    Reasons:
+        ``byte_order``: integers: the image as declared is :data:`BYTE_ORDER_RATIO` times
+            rougher (mean absolute difference of neighbours) than with the other byte
+            order; floats: its values spread over :data:`FLOAT_DECADES` more decades, or
+            over 1 % of them are subnormal while none are in the other order (judged on
+            the finite pixels: a NaN is the estimator's ``non_finite``).
+        ``saturated``: an integer pixel at the top of its type's range (the converter's full
+            scale: the true value is unknown).
+        ``wrapped``: integer counts that wrapped around instead of clipping: neighbours a
+            jump of more than half the type's range apart, from its bottom to its top
+            quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side), or a pixel in the
+            bottom quarter with 2 or more of its 4 neighbours in the top one (a pixel or
+            two wrapped inside the light). 16- and 32-bit integers only: 8 bits hold too
+            few levels to tell a wrap from a sharp donut edge.
+        ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
+    """
+    base = np.dtype(ENCODINGS[encoding])
+    if swapped is not None:
+        _check_byte_order(image, swapped, base)
+    if base.kind in "ui":
+        info = np.iinfo(base)
+        n_top = int(np.count_nonzero(image >= info.max))
+        # A clipped donut holds a plateau at full scale, and its edge can drop to the bias in
+        # one pixel as a wrap does: many pixels at full scale say clipped. A wrap puts a
+        # pixel exactly at full scale by chance only: the wrap test comes before the one
+        # or two of those.
+        if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
+            _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
+        if n_top:
+            raise ImageDecodeError(
+                "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
+                "the converter is saturated and their true values are unknown")
+        return
+    finite = image[np.isfinite(image)]
+    peak = float(np.max(np.abs(finite))) if finite.size else 0.0
+    if peak > 0 and not SCALE_RANGE[0] <= peak <= SCALE_RANGE[1]:
+        raise ImageDecodeError(
+            "bad_scale", f"largest pixel magnitude {peak:.3g} is outside "
+            f"[{SCALE_RANGE[0]:.0e}, {SCALE_RANGE[1]:.0e}]: no detector gives such values, "
+            "and their squares underflow or overflow; send counts, electrons or photons")
+
+
+def _roughness(a: np.ndarray) -> float:
+    """Mean absolute difference of horizontal and vertical neighbours (inf if not finite)."""
+    total, n = 0.0, 0
+    with np.errstate(all="ignore"):
+        for k in (0, 1):
+            if a.shape[k] > 1:
+                d = np.abs(np.diff(a, axis=k))
+                total += float(np.sum(d))
+                n += d.size
+    return total / n if n else 0.0
+
+
+def _log_spread(a: np.ndarray) -> float:
+    """Interquartile range of log10|x| over the finite non-zero pixels (decades)."""
+    x = np.abs(a[np.isfinite(a)])
+    x = x[x > 0]
+    if x.size < 4:
+        return 0.0
+    q1, q3 = np.percentile(np.log10(x), [25, 75])
+    return float(q3 - q1)
+
+
+def _subnormal_fraction(a: np.ndarray, tiny: float) -> float:
+    x = np.abs(a[np.isfinite(a)])
+    return float(np.count_nonzero((x > 0) & (x < tiny))) / max(x.size, 1)
+
+
+def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) -> None:
+    """Integers: the order as given must not be :data:`BYTE_ORDER_RATIO` times rougher than
+    the other (both read the same range, so absolute differences compare). Floats: a wrong
+    order puts mantissa bytes into the exponent, so the values spread over tens to hundreds
+    of decades (or turn NaN/Inf); the order as given must not spread :data:`FLOAT_DECADES`
+    more than the other."""
+    fin_given = bool(np.all(np.isfinite(image)))
+    fin_other = bool(np.all(np.isfinite(swapped)))
+    if not fin_other:
+        return
+    if base.kind == "f":
+        given, other = _log_spread(image), _log_spread(swapped)
+        tiny = float(np.finfo(base).tiny)
+        sub_given, sub_other = _subnormal_fraction(image, tiny), _subnormal_fraction(swapped,
+                                                                                     tiny)
+        # Integer-valued floats read in the wrong order have zero low mantissa bytes in the
+        # exponent: subnormal numbers, which no detector's image holds.
+        bad = given > other + FLOAT_DECADES or (sub_given > 0.01 and sub_other == 0.0)
+        what = (f"their values span {other:.3g} decades (interquartile) against {given:.3g}, "
+                f"{sub_other:.0%} subnormal against {sub_given:.0%}")
+    else:
+        given, other = _roughness(image), _roughness(swapped)
+        bad = given > BYTE_ORDER_RATIO * other
+        what = f"mean neighbour difference {other:.4g} against {given:.4g}"
+    if bad:
+        raise ImageDecodeError(
+            "byte_order", "the pixels disagree with is_bigendian: read in the other byte "
+            f"order they are plausible ({what}{'' if fin_given else ', with NaN/Inf'}); "
+            "fix is_bigendian")
+
+
+def _check_wrap(image: np.ndarray, encoding: str, lo: float, span: float) -> None:
+    u = (image - lo) / span  # position in the type's range, 0..1
+    low = u < WRAP_BAND
+    high = u >= 1.0 - WRAP_BAND
+    if not (low.any() and high.any()):
+        return
+    high_nb, low_nb = _neighbours(high), _neighbours(low)
+    low_step = int(np.count_nonzero(low & (high_nb > 0)))
+    high_step = int(np.count_nonzero(high & (low_nb > 0)))
+    # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
+    # neighbours high (a hot pixel is the opposite: high among low ones).
+    enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
+    if (low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed:
+        raise ImageDecodeError(
+            "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {encoding} "
+            f"range next to {high_step} in its top quarter ({enclosed} surrounded by them): "
+            "counts that wrapped around instead of clipping; clip at the full scale")
+
+
+def _neighbours(mask: np.ndarray) -> np.ndarray:
+    """Number of each pixel's 4 neighbours in ``mask``."""
+    n = np.zeros(mask.shape, dtype=np.int8)
+    n[1:, :] += mask[:-1, :]
+    n[:-1, :] += mask[1:, :]
+    n[:, 1:] += mask[:, :-1]
+    n[:, :-1] += mask[:, 1:]
+    return n
+
+
+def _as_bytes(data: object) -> np.ndarray:
+    """A flat uint8 view (or copy, for a list) of the pixel data."""
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)  # bytes, array.array('B'), memoryview
+    except (TypeError, ValueError):
+        try:
+            return np.asarray(data, dtype=np.uint8).reshape(-1)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise ImageDecodeError("bad_data", f"pixel data is not a byte sequence ({exc})"
+                                   ) from None

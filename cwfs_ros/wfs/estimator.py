@@ -1,0 +1,876 @@
+"""The curvature wavefront estimator: preprocessing, outer compensation loop, TIE solve.
+
+This is the paper's Fig. 3 algorithm.  One call of :func:`estimate_wavefront` takes an
+intra- and an extra-focal donut and returns the annular Zernikes Z4..Z22 of the wavefront
+(nm of OPD) at the mid-point of the two stars' field positions.
+
+Outer loop (paper §2.1): start from W = 0; at iteration k compensate both images with the
+accumulated wavefront ``W_comp`` (:mod:`.compensation`), solve the TIE for the residual
+``W_res`` (:mod:`.tie`), and feed back ``gain * W_res`` restricted to Noll indices up to the
+compensation schedule's k-th entry.  The estimate after iteration k is ``W_comp + W_res``.
+Stop early once the full jmax is compensated and the residual rms falls below a tolerance;
+stop and keep the last good estimate if the compensation folds into caustic.
+
+Split sensor and off-axis (§3.3-3.4): each image has its own mapping at its own star's field
+angle, which removes distortion and that field's design aberrations; the vignetting masks of
+the two images are combined into the common pupil mask; the design wavefront at the
+mid-point field is added back so that the result is the total wavefront there.
+
+Pupil registration (beyond the paper): the images are first aligned by flux centroid, whose
+model depends on the vignetting model; every outer iteration then measures the shift of the
+compensated pupils on the primary's outer rim (the stop, where the model is exact) away from
+any vignetting edge, and moves both images to undo it.  A vignetting model a pixel off (the
+FAM edge fields) otherwise shifts both pupils against the mapping, and the design wavefront,
+sampled at shifted pupil points, reads as tens of nm of astigmatism and coma.
+
+Input checks (:mod:`.checks`): each stamp is rejected if saturated (a configured level, or a
+flat-topped plateau at its maximum), and the pair if the intra and extra images look
+exchanged (off axis, from the vignetted footprints the geometry predicts for each side).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields
+from functools import cached_property, lru_cache, partial
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy import fft as sfft
+from scipy.linalg import solve_triangular
+from scipy.ndimage import distance_transform_edt, gaussian_filter, maximum_filter1d
+
+from cwfs_ros.config import config_dir
+from cwfs_ros.errors import ConfigError, ShapeMismatchError
+from cwfs_ros.layout import NOLL
+from cwfs_ros.wfs.blur import blur_reference, check_seeing, image_blur_sigma_px
+from cwfs_ros.wfs.checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
+from cwfs_ros.wfs.compensation import compensate
+from cwfs_ros.wfs.donuts import PreparedDonut, prepare_donut
+from cwfs_ros.wfs.instrument import Instrument, load_instrument
+from cwfs_ros.wfs.mapping import (
+    ImageMapping,
+    design_zernikes_tiled,
+    nominal_mapping,
+    pupil_transmission,
+    reset_field_tiles,
+)
+from cwfs_ros.wfs.tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
+from cwfs_ros.wfs.zernike import ZernikeBasis, gram_matrix, zernike_basis
+
+__all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "load_algorithm",
+           "load_checks", "PairGeometry", "pair_geometry"]
+
+NOLL_REPORTED = np.asarray(NOLL)  # Z4..Z22, the published product
+
+
+@dataclass(frozen=True)
+class AlgorithmConfig:
+    """Parameters of the outer loop and solver (``config/algorithm.yaml``)."""
+
+    solver: str
+    outer_iterations: int
+    feedback_gain: float
+    compensation_sequence: tuple[int, ...]
+    boundary_px: int
+    oversample: int
+    jmax: int
+    tolerance_nm: float
+    inner_iterations: int = 6
+    edge_sigma_px: float = 1.0
+    smooth_sigma_px: float = 1.0
+    # Basis in which the outer loop truncates the feedback to the schedule's Noll index:
+    # "zernike" (the paper) or "orthonormal" (the annular Zernikes Gram-Schmidt
+    # orthonormalised on the common vignetted pupil, §3.3; see README, Accuracy).
+    feedback_basis: str = "zernike"
+    # Register the compensated pupils on the primary's outer rim at every outer iteration
+    # (corrects centroid alignment biased by vignetting-model errors; README, Accuracy).
+    register_rim: bool = True
+    # Side (deg) of the field tiles over which the design wavefront is interpolated
+    # (:func:`.mapping.design_zernikes_tiled`; ~0.1 nm from the direct trace); 0: direct.
+    design_tile_deg: float = 0.0
+    # Side (deg) of the field tiles over which the batoid mapping is interpolated
+    # (:func:`.mapping._batoid_tiled`); 0: every star field traced directly.
+    map_tile_deg: float = 0.0
+    # Star pairs of one corner after the first start their outer loop from its departure
+    # (estimate_wavefront(initial_nm=...), cwfs_ros.frames.selection.estimate_pairs).  Only
+    # where the configured loop reaches its fixed point, which then does not depend on the
+    # start: lsq does; exp and fft stop short of it on split pairs (README, Accuracy).
+    warm_start: bool = False
+    # Feedback gain of a warm-started loop (estimate_wavefront(initial_nm=...)): near its
+    # fixed point the loop is linear and the lsq model's response matches the images'
+    # (contraction 0.39 per iteration at gain 0.6), so the full step converges in ~4
+    # iterations instead of ~8, to the same point within 0.02 nm (README, Frames).
+    warm_start_gain: float = 0.6
+    # Subtract the edge signal of the image blur (seeing, pixels, smoothing) from the
+    # difference image, predicted from the compensated design donuts (:mod:`.blur`).
+    blur_reference: bool = False
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.solver not in SOLVERS:
+            problems.append(f"solver must be one of {sorted(SOLVERS)}, got {self.solver!r}")
+        if not isinstance(self.outer_iterations, int) or self.outer_iterations < 1:
+            problems.append(f"outer_iterations must be an integer >= 1, got "
+                            f"{self.outer_iterations!r}")
+        if not (isinstance(self.feedback_gain, (int, float)) and 0 < self.feedback_gain <= 1):
+            problems.append(f"feedback_gain must be in (0, 1], got {self.feedback_gain!r}")
+        if not isinstance(self.jmax, int) or self.jmax < 22:
+            problems.append(f"jmax must be an integer >= 22, got {self.jmax!r}")
+        if not self.compensation_sequence or any(
+            not isinstance(j, int) or j < 1 for j in self.compensation_sequence
+        ):
+            problems.append("compensation_sequence must be a list of Noll indices >= 1")
+        if not isinstance(self.boundary_px, int) or self.boundary_px < 1:
+            problems.append(f"boundary_px must be an integer >= 1, got {self.boundary_px!r}")
+        if not isinstance(self.oversample, int) or not 1 <= self.oversample <= 8:
+            problems.append(f"oversample must be an integer in 1..8, got {self.oversample!r}")
+        if not (isinstance(self.tolerance_nm, (int, float)) and self.tolerance_nm >= 0):
+            problems.append(f"tolerance_nm must be >= 0, got {self.tolerance_nm!r}")
+        if not isinstance(self.inner_iterations, int) or self.inner_iterations < 1:
+            problems.append(f"inner_iterations must be an integer >= 1, got "
+                            f"{self.inner_iterations!r}")
+        if not (isinstance(self.design_tile_deg, (int, float))
+                and 0 <= self.design_tile_deg <= 1):
+            problems.append(f"design_tile_deg must be in [0, 1], got {self.design_tile_deg!r}")
+        if not (isinstance(self.map_tile_deg, (int, float)) and 0 <= self.map_tile_deg <= 1):
+            problems.append(f"map_tile_deg must be in [0, 1], got {self.map_tile_deg!r}")
+        if not (isinstance(self.warm_start_gain, (int, float))
+                and 0 < self.warm_start_gain <= 1):
+            problems.append(f"warm_start_gain must be in (0, 1], got {self.warm_start_gain!r}")
+        if not isinstance(self.warm_start, bool):
+            problems.append(f"warm_start must be true or false, got {self.warm_start!r}")
+        if not isinstance(self.blur_reference, bool):
+            problems.append(f"blur_reference must be true or false, got "
+                            f"{self.blur_reference!r}")
+        if self.feedback_basis not in ("zernike", "orthonormal"):
+            problems.append(f"feedback_basis must be 'zernike' or 'orthonormal', got "
+                            f"{self.feedback_basis!r}")
+        if problems:
+            raise ConfigError("algorithm: " + "; ".join(problems))
+
+    def schedule(self) -> list[int]:
+        """Highest compensated Noll index per outer iteration (last entry repeats)."""
+        seq = list(self.compensation_sequence)
+        seq += [seq[-1]] * max(0, self.outer_iterations - len(seq))
+        return [min(j, self.jmax) for j in seq[: self.outer_iterations]]
+
+
+@lru_cache(maxsize=4)
+def _algorithm_yaml(path: str, mtime: float) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(open(path))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read algorithm file {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"algorithm file {path} must hold a mapping per solver")
+    return data
+
+
+def load_algorithm(solver: str = "exp", **overrides: Any) -> AlgorithmConfig:
+    """The solver's parameters from ``config/algorithm.yaml``, with keyword overrides."""
+    path = config_dir() / "algorithm.yaml"
+    data = _algorithm_yaml(str(path), path.stat().st_mtime if path.exists() else 0.0)
+    if solver not in SOLVERS:
+        raise ConfigError(f"unknown solver {solver!r}: choose one of {sorted(SOLVERS)}")
+    params = dict(data.get(solver) or {})
+    params.update({k: v for k, v in overrides.items() if v is not None})
+    if "compensation_sequence" in params:
+        params["compensation_sequence"] = tuple(params["compensation_sequence"])
+    try:
+        return AlgorithmConfig(solver=solver, **params)
+    except TypeError as exc:
+        raise ConfigError(f"algorithm parameters for {solver!r}: {exc}") from exc
+
+
+def load_checks(**overrides: Any) -> CheckConfig:
+    """The input checks' parameters (``input_checks`` in ``config/algorithm.yaml``)."""
+    path = config_dir() / "algorithm.yaml"
+    data = _algorithm_yaml(str(path), path.stat().st_mtime if path.exists() else 0.0)
+    return CheckConfig.from_mapping(data.get("input_checks"), **overrides)
+
+
+_CHECK_KEYS = frozenset(f.name for f in fields(CheckConfig))
+
+
+# -- geometry: everything that depends only on the instrument, fields and algorithm ---------
+
+@dataclass(frozen=True)
+class PairGeometry:
+    """Cached pupil sampling, masks, mappings, Zernike basis and solver for one pair geometry.
+
+    Attributes:
+        shape: (n, n) pupil grid; ``spacing`` in reduced pupil units per sample.
+        region: flat indices of the computation points (pupil mask dilated by the boundary).
+        x, y: reduced pupil coordinates of the computation points.
+        mask_intra, mask_extra: transmitted (unvignetted) pupil of each image, on the points.
+        mask_common: logical AND of the two (paper §3.4).
+        weight: 1 where the signal is used, 0 where only one of the two images is transmitted.
+        mapping_intra, mapping_extra: unperturbed mappings at each star's field.
+        kappa: ``kappa_intra - kappa_extra`` (see :mod:`.tie`), per nm of Laplacian.
+        intrinsic_nm: design wavefront Z1..Z_jmax (nm) at the mid-point field.
+        gram_common: Gram matrix of Z1..Z_jmax over the common pupil (§3.3: the identity
+            on a full annulus, not on a vignetted pupil).
+        feedback_l: Cholesky factor L of ``gram_common`` (``Z = L U`` with U orthonormal on
+            the common pupil) when the feedback is truncated in that basis, else None.
+        rim_index, rim_pinv: computation points of the pupil-registration band on the
+            primary's outer rim where neither image is vignetted, and the (3, n) least-squares
+            operator giving (level, level * shift_x, level * shift_y) of the mean
+            compensated image there (see :func:`_rim_registration`); None if too few.
+        jac_mean_intra, jac_mean_extra: mean mapping Jacobian (px per pupil unit), which
+            turns a pupil shift into the image shift that undoes it.
+        footprints: predicted image-plane footprints of both images for the swapped-pair
+            check (:func:`.checks.pair_footprints`), built on first use (~3 ms): a corner
+            whose frames are confirmed the right way round skips the check for its further
+            pairs (:func:`cwfs_ros.frames.selection.estimate_pairs`).
+    """
+
+    shape: tuple[int, int]
+    spacing: float
+    region: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    mask_intra: np.ndarray
+    mask_extra: np.ndarray
+    mask_common: np.ndarray
+    weight: np.ndarray
+    mapping_intra: ImageMapping
+    mapping_extra: ImageMapping
+    basis: ZernikeBasis
+    solver: SeriesExpansion | IterativeFFT | LeastSquares
+    kappa: float
+    intrinsic_nm: np.ndarray
+    field_mid_deg: tuple[float, float]
+    outer_radius_px: float
+    centroid_model_intra: np.ndarray
+    centroid_model_extra: np.ndarray
+    mean_gradient_intra: np.ndarray
+    mean_gradient_extra: np.ndarray
+    build_time_s: float = 0.0
+    feedback_l: np.ndarray | None = None
+    rim_index: np.ndarray | None = None
+    rim_pinv: np.ndarray | None = None
+    jac_mean_intra: np.ndarray | None = None
+    jac_mean_extra: np.ndarray | None = None
+    footprint_inputs: tuple | None = field(default=None, repr=False)
+    obscuration: float = 0.0
+    # Each side's f(x, y) -> transmitted, for pupil points off the grid (mapping
+    # .pupil_transmission at the star's field): the blur reference's exact vignetting edges.
+    transmissions: tuple = field(default=(None, None), repr=False, compare=False)
+    # blur_reference() results by (blur, stamp shape): each pair's geometry meets one seeing
+    # and one stamp size per visit.
+    _blur_refs: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @cached_property
+    def gram_common(self) -> np.ndarray:
+        """Gram matrix of Z1..Z_jmax over the common pupil, built on first use (~1 ms; only
+        the orthonormal feedback and the Gram report read it)."""
+        gram = gram_matrix(self.basis, self.mask_common, j_min=1, j_max=self.basis.jmax)
+        gram.setflags(write=False)
+        return gram
+
+    @cached_property
+    def footprints(self) -> PairFootprints | None:
+        return None if self.footprint_inputs is None else _footprints(*self.footprint_inputs)
+
+    def blur_reference(self, blur_px: float, stamp_shape: tuple[int, int]) -> np.ndarray:
+        """The edge signal of an image blur of ``blur_px`` (sigma beyond the pixels) in the
+        weighted difference image, for stamps of ``stamp_shape`` (:func:`.blur.blur_reference`;
+        cached; ~25 ms to build, most of it the two design donuts; bench_blur_reference.py)."""
+        key = (round(float(blur_px), 4), tuple(stamp_shape))
+        ref = self._blur_refs.get(key)
+        if ref is None:
+            if len(self._blur_refs) >= 4:
+                self._blur_refs.clear()
+            ref = blur_reference((self.mapping_intra, self.mapping_extra), self.x, self.y,
+                                 self.spacing, self.obscuration, self.weight, key[1], key[0],
+                                 self.transmissions, (self.shape, self.region))
+            ref.setflags(write=False)
+            self._blur_refs[key] = ref
+        return ref
+
+    def pupil_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        """Scatter values on the computation points into an (n, n) image for display."""
+        out = np.full(self.shape[0] * self.shape[1], fill)
+        out[self.region] = values
+        return out.reshape(self.shape)
+
+
+def _disk(radius: int) -> np.ndarray:
+    """Boolean disk structuring element of the given radius in grid samples."""
+    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    return xx * xx + yy * yy <= radius * radius
+
+
+@lru_cache(maxsize=16)
+def _disk_rectangles(radius: int) -> tuple[tuple[int, int], ...]:
+    """Half-widths (x, y) of the rectangles whose union is ``_disk(radius)``: one per step
+    of the disk's staircase edge (radius 4: 4 rectangles)."""
+    w = [int(np.floor(np.sqrt(radius * radius - d * d) + 1e-9)) for d in range(radius + 1)]
+    return tuple((w[d], d) for d in range(radius + 1) if d == radius or w[d] > w[d + 1])
+
+
+# Up to this radius the rectangle decomposition beats the distance transform (radius 4:
+# 1.1 against 2.8 ms on a 150 x 150 pupil grid; radius 12: 3.4 against 2.8 ms).
+_DILATE_RECT_MAX = 6
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``binary_dilation(mask, structure=_disk(radius))``, computed fast.
+
+    Small radii: the union of the dilations by the disk's rectangles
+    (:func:`_disk_rectangles`), each separable into two running maxima.  Larger ones: a
+    Euclidean distance transform (a pixel is within the disk of some True pixel iff its
+    distance to the nearest one is <= radius; the squared distances are integers, so the
+    float comparison is exact), whose cost does not grow with the radius.  Both give the
+    same set (test_geometry_speed).
+    """
+    if not mask.any():
+        return np.zeros_like(mask, dtype=bool)
+    if radius > _DILATE_RECT_MAX:
+        return distance_transform_edt(~mask) <= radius
+    m = mask.astype(np.uint8)
+    out = np.zeros(mask.shape, bool)
+    for a, b in _disk_rectangles(int(radius)):
+        t = maximum_filter1d(m, 2 * a + 1, axis=1, mode="constant") if a else m
+        t = maximum_filter1d(t, 2 * b + 1, axis=0, mode="constant") if b else t
+        out |= t.astype(bool)
+    return out
+
+
+def _kappa(m: ImageMapping, mask: np.ndarray) -> float:
+    """Image contrast per unit Laplacian, ``C tr(A^-1) / 2`` averaged over the pupil."""
+    tr_inv = (m.jxx + m.jyy) / m.det
+    return float(m.c_px_per_nm * np.mean(tr_inv[mask]) / 2.0)
+
+
+def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray,
+                      x: np.ndarray, y: np.ndarray, annulus: np.ndarray, mask_in: np.ndarray,
+                      mask_ex: np.ndarray, r_d: float, algo: AlgorithmConfig
+                      ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Points and operator registering the compensated images on the primary's outer rim.
+
+    The images are aligned by their flux centroids, whose model depends on the vignetting
+    model: where the real vignetting edges differ from the model's by a pixel (the FAM edge
+    fields, README), the centroids put both compensated pupils ~1.5 px off the mapping, and
+    the design wavefront, sampled at shifted pupil points, reads as tens of nm of
+    astigmatism and coma.  The primary's outer edge is the pupil stop, known exactly; on
+    the arcs where no vignetting edge is near, the mean of the two compensated images,
+    in which the wavefront's edge signals cancel (they move the intra and extra edges
+    oppositely, §2.1), is fitted as ``L * M_b(p - s)`` (``M_b``: the mask blurred like the
+    images), linearised in the pupil shift s.
+    """
+    n = shape[0]
+    band = 4.0 + 2.0 * algo.smooth_sigma_px  # px either side of the rim
+    r = np.hypot(x, y)
+    untrusted = np.zeros(n * n, bool)
+    untrusted[region] = (annulus ^ mask_in) | (annulus ^ mask_ex)
+    untrusted = _dilate(untrusted.reshape(n, n), int(np.ceil(2 * band * algo.oversample)))
+    sel = (np.abs(r - 1.0) <= band / r_d) & ~untrusted.ravel()[region]
+    if sel.sum() < 200:
+        return None, None
+    sigma = np.hypot(algo.smooth_sigma_px, np.sqrt(1.0 / 12.0)) * algo.oversample
+    grid = np.zeros(n * n)
+    grid[region] = 0.5 * (mask_in.astype(float) + mask_ex.astype(float))
+    mb = gaussian_filter(grid.reshape(n, n), sigma)
+    gy, gx = np.gradient(mb, spacing)
+    idx = region[sel]
+    design = np.stack([mb.ravel()[idx], -gx.ravel()[idx], -gy.ravel()[idx]], axis=1)
+    normal = design.T @ design
+    if np.linalg.cond(normal) > 1e8:
+        return None, None
+    return np.flatnonzero(sel), np.linalg.solve(normal, design.T).astype(np.float32)
+
+
+def _footprints(m_in: ImageMapping, m_ex: ImageMapping, grid_in: np.ndarray,
+                grid_ex: np.ndarray, cand: np.ndarray, n: int,
+                outer_radius_px: float) -> PairFootprints:
+    """Footprints of the swapped-pair check (:func:`.checks.pair_footprints`).
+
+    ``m_in``/``m_ex`` are mapped at the candidate points ``cand`` (the whole annulus plus
+    boundary); ``grid_in``/``grid_ex`` the transmitted masks on the (n, n) pupil grid, which
+    is symmetric about the pupil centre, so reversing both axes turns a mask by 180 degrees.
+    """
+    pts = []
+    for m, grid in ((m_in, grid_in), (m_ex, grid_ex)):
+        turned = grid.reshape(n, n)[::-1, ::-1].ravel()[cand]
+        pts.append(((m.x_px[m.transmitted], m.y_px[m.transmitted]),
+                    (m.x_px[turned], m.y_px[turned])))
+    return pair_footprints((pts[0], pts[1]), outer_radius_px)
+
+
+def _mean_jacobian(m: ImageMapping) -> np.ndarray:
+    t = m.transmitted
+    return np.array([[m.jxx[t].mean(), m.jxy[t].mean()],
+                     [m.jyx[t].mean(), m.jyy[t].mean()]], dtype=float)
+
+
+@lru_cache(maxsize=4)
+def _pupil_grid(n: int, spacing: float, extent: float, obscuration: float, jmax: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, ZernikeBasis]:
+    """Candidate points of the (n, n) pupil grid, their coordinates and Zernike basis.
+
+    Field-independent: every pair of one instrument and defocus shares the grid, and a new
+    field only selects its computation region from it (:meth:`ZernikeBasis.subset`), which
+    saves the basis and its derivatives per star pair (~4 ms, README Speed).
+    """
+    ax = (np.arange(n) - (n - 1) / 2.0) * spacing
+    gx, gy = np.meshgrid(ax, ax)
+    r = np.hypot(gx, gy).ravel()
+    cand = np.flatnonzero((r <= extent) & (r >= obscuration - (extent - 1.0)))
+    x, y = gx.ravel()[cand], gy.ravel()[cand]
+    basis = zernike_basis(x, y, jmax=jmax, eps=obscuration, dtype=np.float32)
+    _ = basis.dx, basis.dy  # built once here, indexed per pair
+    for a in (cand, x, y):
+        a.setflags(write=False)
+    return cand, x, y, basis
+
+
+@lru_cache(maxsize=4)
+def _candidate_positions(n: int, spacing: float, extent: float, obscuration: float,
+                         jmax: int) -> np.ndarray:
+    """Position in :func:`_pupil_grid`'s candidate points of each (n, n) grid sample, -1
+    off them: a field's computation region is read from it rather than searched for."""
+    cand = _pupil_grid(n, spacing, extent, obscuration, jmax)[0]
+    lut = np.full(n * n, -1, dtype=np.intp)
+    lut[cand] = np.arange(cand.size)
+    lut.setflags(write=False)
+    return lut
+
+
+@lru_cache(maxsize=32)
+def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
+                  field_intra_deg: tuple[float, float], field_extra_deg: tuple[float, float],
+                  defocus_mm: float, algo: AlgorithmConfig) -> PairGeometry:
+    """Build (and cache) the geometry of an intra/extra pair.  Depends on no image data."""
+    t0 = time.perf_counter()
+    r_d = inst.donut_radius_px(defocus_mm)
+    spacing = 1.0 / (r_d * algo.oversample)
+    # Generous extent: the fast beam enlarges the donut by ~4%; the boundary adds more.
+    extent = 1.08 + (algo.boundary_px + 3) / r_d
+    # A transform-friendly grid side (the fft solver's cost depends on it).
+    n = sfft.next_fast_len(2 * int(np.ceil(extent / spacing)) + 1, real=True)
+    cand, x, y, grid_basis = _pupil_grid(n, spacing, extent, inst.obscuration, algo.jmax)
+    kw = dict(defocus_mm=defocus_mm, band=band, wavelength_nm=wavelength_nm,
+              tile_deg=algo.map_tile_deg)
+    m_in = nominal_mapping(inst, "intra", x, y, field_deg=field_intra_deg, **kw)
+    m_ex = nominal_mapping(inst, "extra", x, y, field_deg=field_extra_deg, **kw)
+    grid_in = np.zeros(n * n, bool)
+    grid_ex = np.zeros(n * n, bool)
+    grid_in[cand] = m_in.transmitted
+    grid_ex[cand] = m_ex.transmitted
+    full_in, full_ex = m_in, m_ex  # mapped over the whole annulus, for the footprints
+    if not (grid_in & grid_ex).any():
+        raise ConfigError("intra and extra pupils do not overlap: check the field angles")
+    # Computation region: the union of the pupils dilated by the boundary thickness.
+    region2d = _dilate((grid_in | grid_ex).reshape(n, n), algo.boundary_px * algo.oversample)
+    cand_pos = _candidate_positions(n, spacing, extent, inst.obscuration, algo.jmax)
+    region = np.flatnonzero(region2d.ravel() & (cand_pos >= 0))
+    pos = cand_pos[region]
+
+    def take(m: ImageMapping) -> ImageMapping:
+        # float32 halves the memory traffic of the per-iteration compensation; positions
+        # keep ~1e-5 px precision on a 200 px stamp.
+        f32 = [np.ascontiguousarray(a[pos], dtype=np.float32)
+               for a in (m.x_px, m.y_px, m.jxx, m.jxy, m.jyx, m.jyy)]
+        return ImageMapping(m.side, *f32, m.transmitted[pos], m.c_px_per_nm, m.fit_rms_px)
+
+    m_in, m_ex = take(m_in), take(m_ex)
+    x, y = x[pos], y[pos]
+    mask_in, mask_ex = m_in.transmitted, m_ex.transmitted
+    common = mask_in & mask_ex
+    # Signal weight: zero where only one image is transmitted, and over a guard band around
+    # those places, because the blurred edge of the image that stops there reaches a couple
+    # of pixels into the common pupil, where the other image is still bright (paper §3.4's
+    # common mask, made robust to edge blur).  Edges the two pupils share keep their signal.
+    only_one = np.zeros(n * n, bool)
+    only_one[region] = mask_in ^ mask_ex
+    guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
+    near = _dilate(only_one.reshape(n, n), guard)
+    weight = np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
+    basis = grid_basis.subset(pos)
+    kappa = _kappa(m_in, common) - _kappa(m_ex, common)
+    if algo.solver == "exp":
+        solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)
+    elif algo.solver == "fft":
+        solver = IterativeFFT((n, n), spacing, region, basis, common, algo.inner_iterations)
+    else:
+        solver = LeastSquares((n, n), spacing, region, basis, common,
+                              algo.edge_sigma_px * algo.oversample, mappings=(m_in, m_ex),
+                              kappa=kappa, weight=weight)
+    mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
+           0.5 * (field_intra_deg[1] + field_extra_deg[1]))
+    intrinsic = design_zernikes_tiled(inst, band, wavelength_nm, mid, algo.jmax,
+                                      algo.design_tile_deg)
+    # Radius of the circle around the flux centroid that holds the whole donut (off axis the
+    # donut is neither centred on the chief ray nor round).
+    outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
+                               m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
+                      for m in (m_in, m_ex)))
+    # The swapped-pair footprints are built on first use (PairGeometry.footprints).
+    footprint_inputs = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
+    feedback_l = (np.linalg.cholesky(gram_matrix(basis, common, j_min=1, j_max=basis.jmax))
+                  if algo.feedback_basis == "orthonormal" else None)
+    r_pupil = np.hypot(x, y)
+    annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
+    rim_index, rim_pinv = (None, None)
+    if algo.register_rim:
+        rim_index, rim_pinv = _rim_registration((n, n), spacing, region, x, y, annulus,
+                                                mask_in, mask_ex, r_d * algo.oversample,
+                                                algo)
+    for arr in (x, y, mask_in, mask_ex, common, weight, region):
+        arr.setflags(write=False)
+    def mean_gradient(mask: np.ndarray) -> np.ndarray:
+        """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
+        w = mask.astype(np.float32) / max(int(mask.sum()), 1)
+        return np.stack([basis.dx @ w, basis.dy @ w]).astype(float)
+
+    def centroid(m: ImageMapping) -> np.ndarray:
+        return np.array([float(m.x_px[m.transmitted].mean()),
+                         float(m.y_px[m.transmitted].mean())])
+
+    return PairGeometry((n, n), spacing, region, x, y, mask_in, mask_ex, common, weight,
+                        m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
+                        centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
+                        mean_gradient(mask_ex), time.perf_counter() - t0, feedback_l,
+                        rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
+                        footprint_inputs, float(inst.obscuration),
+                        tuple(partial(pupil_transmission, inst, side, defocus_mm=defocus_mm,
+                                      band=band, wavelength_nm=wavelength_nm, field_deg=f,
+                                      tile_deg=algo.map_tile_deg)
+                              for side, f in (("intra", field_intra_deg),
+                                              ("extra", field_extra_deg))))
+
+
+# -- result -------------------------------------------------------------------------------
+
+@dataclass
+class WavefrontResult:
+    """Outcome of one wavefront estimate.
+
+    Attributes:
+        zernikes_nm: Z4..Z22 (19 values) of the total wavefront at ``field_deg``, nm OPD.
+        zernikes_all_nm: Z1..Z_jmax (index j-1), nm; Z1-Z3 are not measurable (set to 0).
+        intrinsic_nm: design wavefront Z4..Z22 at ``field_deg`` that was added back (zero
+            for non-ray-traced instruments); ``zernikes_nm - intrinsic_nm`` is the departure
+            from design.
+        noll: the Noll indices of ``zernikes_nm`` (4..22).
+        caustic: the compensation folded into caustic; the estimate is the last good one.
+        converged: the iteration settled: the last update (rms of the residual over
+            Z4..Z_jmax) fell below the solver's ``tolerance_nm`` before the iteration limit.
+            It says the outer loop stopped moving, not that the estimate is accurate:
+            False only means the limit of iterations was reached first (read
+            ``residual_rms_nm[-1]`` for the size of the last update).
+        iterations: outer iterations run.
+        history_nm: estimate Z1..Z_jmax after each outer iteration, shape (iterations, jmax).
+        residual_rms_nm: rms of each iteration's residual over Z4..Z_jmax.
+        field_deg: field of the result (mid-point of the two stars).
+        wall_time_s: wall time of this call; ``geometry_time_s`` the part spent building the
+            (cached) geometry, 0 when it was cached.
+        masks: pupil masks used (2-D images on the pupil grid): intra, extra, common, region.
+        compensated: final compensated intra and extra images on the pupil grid.
+        inputs: preprocessing measurements of each donut.
+        swap_check: outcome of the swapped-pair check: ``"confirmed"`` (the images are the
+            right way round beyond doubt: preference above ``swap_threshold`` at
+            ``swap_min_significance``), ``"inconclusive"`` (it ran and could not tell) or
+            ``"off"`` (disabled, or no vignetting to tell by).  An exchanged pair raises.
+    """
+
+    zernikes_nm: np.ndarray
+    zernikes_all_nm: np.ndarray
+    intrinsic_nm: np.ndarray
+    caustic: bool
+    converged: bool
+    iterations: int
+    history_nm: np.ndarray
+    residual_rms_nm: np.ndarray
+    field_deg: tuple[float, float]
+    wall_time_s: float
+    geometry_time_s: float
+    solver: str
+    instrument: str
+    band: str
+    wavelength_nm: float
+    masks: dict[str, np.ndarray] = field(repr=False)
+    compensated: dict[str, np.ndarray] = field(repr=False)
+    inputs: dict[str, PreparedDonut] = field(repr=False)
+    noll: np.ndarray = field(default_factory=lambda: NOLL_REPORTED.copy())
+    swap_check: str = "off"
+    # Z1..Z_jmax (nm) of the departure from design (``zernikes_all_nm`` before the design
+    # wavefront is added back; Z1-Z3 zero): what ``initial_nm`` of another pair takes.
+    departure_all_nm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+
+    def __repr__(self) -> str:
+        # One line; the arrays are in the attributes (the dataclass repr was ~6000 chars).
+        dep = self.zernikes_nm - self.intrinsic_nm
+        flags = [n for n, on in (("caustic", self.caustic), ("not settled", not self.converged))
+                 if on]
+        return (f"<WavefrontResult {self.instrument} {self.band} {self.wavelength_nm:g} nm, "
+                f"{self.solver}, field ({self.field_deg[0]:.4f}, {self.field_deg[1]:.4f}) deg:"
+                f" Z4..Z22 {np.sqrt(np.sum(self.zernikes_nm ** 2)):.1f} nm "
+                f"(departure from design {np.sqrt(np.sum(dep ** 2)):.1f} nm, Z4 "
+                f"{self.zernikes_nm[0]:.1f} nm), {self.iterations} iterations, swap_check "
+                f"{self.swap_check}{''.join(', ' + f for f in flags)}>")
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly summary."""
+        return {
+            "noll": self.noll.tolist(),
+            "zernikes_nm": [round(float(v), 4) for v in self.zernikes_nm],
+            "intrinsic_nm": [round(float(v), 4) for v in self.intrinsic_nm],
+            "caustic": bool(self.caustic),
+            "converged": bool(self.converged),  # settled: last update below tolerance_nm
+            "iterations": int(self.iterations),
+            "swap_check": self.swap_check,
+            "field_deg": [float(v) for v in self.field_deg],
+            "solver": self.solver,
+            "instrument": self.instrument,
+            "band": self.band,
+            "wavelength_nm": self.wavelength_nm,
+            "wall_time_s": round(self.wall_time_s, 6),
+        }
+
+
+def reset_caches() -> None:
+    """Drop the pair geometries and the field tiles (:func:`.mapping.reset_field_tiles`):
+    the state of a freshly started worker process."""
+    pair_geometry.cache_clear()
+    reset_field_tiles()
+
+
+def _field(value: Any, name: str) -> tuple[float, float]:
+    try:
+        fx, fy = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be two numbers (x, y) in degrees, got {value!r}") from None
+    if not (np.isfinite(fx) and np.isfinite(fy)) or np.hypot(fx, fy) > 5.0:
+        raise ConfigError(f"{name} must be finite and within 5 deg of the axis, got {value!r}")
+    return fx, fy
+
+
+def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
+                       field_intra_deg: tuple[float, float],
+                       field_extra_deg: tuple[float, float],
+                       instrument: str | Instrument = "lsst", band: str = "r",
+                       wavelength_nm: float | None = None,
+                       defocal_offset_mm: float | None = None, solver: str = "lsq",
+                       saturation_level: float | None = None,
+                       initial_nm: np.ndarray | None = None,
+                       seeing_fwhm_arcsec: float = 0.0,
+                       **algorithm: Any) -> WavefrontResult:
+    """Estimate the wavefront from an intra/extra-focal donut pair (paper Fig. 3).
+
+    Args:
+        intra: image at negative detector offset, ``[row=y, col=x]`` in the focal-plane frame
+            of the field angles (as batoid renders it).
+        extra: image at positive detector offset, same frame (not rotated).
+        field_intra_deg, field_extra_deg: field angles (x, y) of the two stars in degrees.
+        instrument: name of a ``config/instruments`` YAML, a path to one, or an Instrument.
+        band: optical band of the model (u, g, r, i, z, y); selects the batoid optic.
+        wavelength_nm: wavelength; defaults to the band's effective wavelength.
+        defocal_offset_mm: |detector offset|; defaults to the instrument's.
+        solver: ``"lsq"`` (least squares, the default: the smallest error in every measured
+            case, README, Accuracy), or the paper's ``"exp"`` (series expansion) and
+            ``"fft"`` (iterative FFT), kept to reproduce its figures.
+        saturation_level: pixel value (input units) at which the detector saturates;
+            defaults to the instrument's ``saturation_level`` (None: unknown, and only the
+            plateau test of :mod:`.checks` detects saturation).
+        initial_nm: warm start: a departure from design (Noll Z1.., nm; Z1-Z3 ignored), e.g.
+            another star pair's estimate on the same sensor.  The outer loop then starts
+            compensated by it, at the full jmax from the first iteration (the schedule's
+            ramp-up protects a start from zero against caustics) with the configured
+            ``warm_start_gain``, and stops on convergence as usual.  Converged, the result
+            does not depend on the start: the loop's fixed point is where the compensated
+            images agree (README, Frames).
+        seeing_fwhm_arcsec: atmospheric seeing (FWHM, arcsec) of the images, e.g. from the
+            observatory's seeing monitor.  Where the solver's ``blur_reference`` is on
+            (exp, lsq), the edge signal of the images' blur (the seeing, the pixels and the
+            smoothing) is predicted and taken out of the difference image (:mod:`.blur`;
+            README, Accuracy).  0: no seeing given, no such correction.
+        **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
+            feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
+            tolerance_nm, inner_iterations, register_rim, feedback_basis, design_tile_deg)
+            and those of its ``input_checks`` (plateau_check, swap_check, ... see
+            :class:`.checks.CheckConfig`).
+
+    Returns:
+        A :class:`WavefrontResult`; ``.zernikes_nm`` holds Z4..Z22 in nm.
+
+    Raises:
+        ImageError (a subclass naming the problem) for unusable images: non-finite, flat,
+        cut, too small, mismatched, saturated (``reason`` "saturated") or an exchanged
+        intra/extra pair ("swapped"); ConfigError for invalid parameters or configuration.
+    """
+    t0 = time.perf_counter()
+    inst = load_instrument(instrument)
+    checks = load_checks(**{k: algorithm.pop(k) for k in list(algorithm) if k in _CHECK_KEYS})
+    algo = load_algorithm(solver, **algorithm)
+    sat = inst.saturation_level if saturation_level is None else saturation_level
+    if sat is not None and not (isinstance(sat, (int, float)) and np.isfinite(sat)):
+        raise ConfigError(f"saturation_level must be a finite number or None, got {sat!r}")
+    seeing_fwhm_arcsec = check_seeing(seeing_fwhm_arcsec)
+    fi = _field(field_intra_deg, "field_intra_deg")
+    fe = _field(field_extra_deg, "field_extra_deg")
+    inst.check_field(fi, "field_intra_deg")
+    inst.check_field(fe, "field_extra_deg")
+    defocus = inst.defocal_offset_mm if defocal_offset_mm is None else float(defocal_offset_mm)
+    if not (np.isfinite(defocus) and 0 < defocus < 100):
+        raise ConfigError(f"defocal_offset_mm must be in (0, 100), got {defocal_offset_mm!r}")
+    if inst.mapping == "batoid" and band not in inst.band_wavelength_nm:
+        raise ConfigError(f"unknown band {band!r}; known: {sorted(inst.band_wavelength_nm)}")
+    wl = inst.wavelength_nm(band, wavelength_nm)
+    a_in, a_ex = np.asarray(intra), np.asarray(extra)
+    if a_in.shape != a_ex.shape:
+        raise ShapeMismatchError(
+            f"intra and extra images differ in shape: {a_in.shape} vs {a_ex.shape}"
+        )
+
+    hits = pair_geometry.cache_info().hits
+    geom = pair_geometry(inst, band, wl, fi, fe, defocus, algo)
+    geom_time = 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
+
+    # The donut plus its blurred edge must lie inside the stamp; the computation region may
+    # extend beyond it (samples outside a stamp read zero flux, which is what is there).
+    margin = 2.0 + algo.smooth_sigma_px
+    don_in = prepare_donut(a_in, name="intra", outer_radius_px=geom.outer_radius_px,
+                           margin_px=margin, saturation_level=sat, checks=checks)
+    don_ex = prepare_donut(a_ex, name="extra", outer_radius_px=geom.outer_radius_px,
+                           margin_px=margin, saturation_level=sat, checks=checks)
+    # Off axis the vignetting tells which image is which: an exchanged pair gives a wrong
+    # wavefront with no other sign of trouble (see cwfs_ros.wfs.checks).
+    swap = None
+    if checks.swap_check and geom.footprints is not None:
+        swap = check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy,
+                                 don_ex.centroid_xy, (don_in.noise, don_ex.noise),
+                                 geom.footprints, checks)
+    # Align each image so that its centroid falls where the mapping, with the current
+    # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
+    # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any
+    # term on a vignetted pupil, and differs between the two halves of a split sensor.
+    # Tip/tilt itself then has no effect; it is solved for as a nuisance term and dropped.
+    m_in, m_ex = geom.mapping_intra, geom.mapping_extra
+    base_in = np.array(don_in.centroid_xy) - geom.centroid_model_intra
+    base_ex = np.array(don_ex.centroid_xy) - geom.centroid_model_extra
+
+    # A light Gaussian blur makes the images smooth on the scale of the pupil sampling, so
+    # that point-sampling them (compensation) integrates flux without a dependence on where
+    # the samples fall inside pixels; unblurred, that aliasing biased Z4 by ~13 nm.
+    img_in, img_ex = don_in.image, don_ex.image
+    if algo.smooth_sigma_px > 0:
+        img_in = gaussian_filter(img_in, algo.smooth_sigma_px, mode="constant")
+        img_ex = gaussian_filter(img_ex, algo.smooth_sigma_px, mode="constant")
+    img_in = img_in.astype(np.float32)
+    img_ex = img_ex.astype(np.float32)
+    blur_ref = None
+    if algo.blur_reference and seeing_fwhm_arcsec > 0:
+        # The images' blur beyond the pixels: the seeing and the smoothing above.  Without a
+        # seeing (0: none given) the loop is the one every figure before the seeing input
+        # was measured with: the model of the pixels and the smoothing alone moved FAM's
+        # worst term from 21.4 to 25.1 nm (README, Accuracy).
+        blur_px = image_blur_sigma_px(seeing_fwhm_arcsec, algo.smooth_sigma_px,
+                                      inst.pixel_size_um, inst.focal_length_m)
+        blur_ref = geom.blur_reference(blur_px, img_in.shape)
+
+    jmax = algo.jmax
+    w_comp = np.zeros(jmax)
+    schedule = algo.schedule()
+    gain = algo.feedback_gain
+    if initial_nm is not None:
+        start = np.asarray(initial_nm, dtype=float).ravel()[:jmax]
+        if not np.all(np.isfinite(start)):
+            raise ConfigError("initial_nm must be finite")
+        w_comp[:start.size] = start
+        w_comp[:3] = 0.0
+        schedule = [jmax] * algo.outer_iterations
+        gain = algo.warm_start_gain
+    estimate = w_comp.copy()
+    history: list[np.ndarray] = []
+    res_rms: list[float] = []
+    caustic = False
+    converged = False
+    last = None
+    idx = np.arange(1, jmax + 1)
+    for j_stage in schedule:
+        derivs = geom.basis.derivative_fields(w_comp)
+        centre_in = base_in - m_in.c_px_per_nm * (geom.mean_gradient_intra @ w_comp)
+        centre_ex = base_ex - m_ex.c_px_per_nm * (geom.mean_gradient_extra @ w_comp)
+        c_in = compensate(img_in, centre_in, m_in, derivs)
+        c_ex = compensate(img_ex, centre_ex, m_ex, derivs)
+        if c_in.caustic or c_ex.caustic:
+            # Rays cross before the image plane: keep the last good estimate (§2.1).
+            caustic = True
+            break
+        last = (c_in.intensity, c_ex.intensity)
+        shift_px = 0.0
+        if geom.rim_pinv is not None:
+            # Pupil registration on the rim (see _rim_registration), applied from the next
+            # iteration on: move each image by the mapping's Jacobian times the pupil shift.
+            rim = 0.5 * (c_in.intensity[geom.rim_index] + c_ex.intensity[geom.rim_index])
+            level, ax, ay = (geom.rim_pinv @ rim).astype(float)
+            if level > 0.2:
+                shift = np.array([ax, ay]) / level
+                base_in = base_in + geom.jac_mean_intra @ shift
+                base_ex = base_ex + geom.jac_mean_extra @ shift
+                shift_px = float(np.abs(geom.jac_mean_intra @ shift).max())
+        d_i = (c_in.intensity - c_ex.intensity) * geom.weight
+        if blur_ref is not None:
+            d_i -= blur_ref  # what the blur alone puts there (cwfs_ros.wfs.blur)
+        w_res = geom.solver.solve(d_i, geom.kappa)
+        w_res[:3] = 0.0  # piston has no signal; tip/tilt is taken out by the alignment
+        estimate = w_comp + w_res
+        history.append(estimate.copy())
+        rms = float(np.sqrt(np.mean(w_res[3:] ** 2)))
+        res_rms.append(rms)
+        if j_stage >= jmax and rms < algo.tolerance_nm and shift_px < 0.01:
+            converged = True
+            break
+        if geom.feedback_l is None:
+            step = np.where(idx <= j_stage, w_res, 0.0)
+        else:
+            # Truncate in the basis orthonormal on the vignetted pupil (u = L^T w); L^T is
+            # upper triangular, so the step stays within Z1..Z_{j_stage}.
+            u = geom.feedback_l.T @ w_res
+            u[idx > j_stage] = 0.0
+            step = solve_triangular(geom.feedback_l.T, u, lower=False)
+        w_comp = w_comp + gain * step
+        w_comp[:3] = 0.0
+    if not history:
+        # Caustic already at the first compensation: nothing trustworthy was estimated.
+        estimate = np.zeros(jmax)
+    total = estimate + np.asarray(geom.intrinsic_nm)
+    total[:3] = 0.0
+    comp = {}
+    if last is not None:
+        comp = {"intra": geom.pupil_image(last[0]), "extra": geom.pupil_image(last[1])}
+    masks = {
+        "intra": geom.pupil_image(geom.mask_intra.astype(float), 0.0) > 0,
+        "extra": geom.pupil_image(geom.mask_extra.astype(float), 0.0) > 0,
+        "common": geom.pupil_image(geom.mask_common.astype(float), 0.0) > 0,
+        "region": geom.pupil_image(np.ones(geom.region.size), 0.0) > 0,
+    }
+    return WavefrontResult(
+        zernikes_nm=total[3:22].copy(),
+        zernikes_all_nm=total,
+        intrinsic_nm=np.asarray(geom.intrinsic_nm)[3:22].copy(),
+        caustic=caustic,
+        converged=converged,
+        iterations=len(history),
+        history_nm=np.array(history).reshape(len(history), jmax),
+        residual_rms_nm=np.array(res_rms),
+        field_deg=geom.field_mid_deg,
+        wall_time_s=time.perf_counter() - t0,
+        geometry_time_s=geom_time,
+        solver=algo.solver,
+        instrument=inst.name,
+        band=band,
+        wavelength_nm=wl,
+        masks=masks,
+        compensated=comp,
+        inputs={"intra": don_in, "extra": don_ex},
+        departure_all_nm=np.concatenate([[0.0, 0.0, 0.0], estimate[3:]]),
+        swap_check=("off" if swap is None else
+                    "confirmed" if (swap.preference[1] > checks.swap_threshold
+                                    and swap.significance[1] > checks.swap_min_significance)
+                    else "inconclusive"),
+    )
