@@ -481,11 +481,13 @@ _register_validate_subcommand()
 
 
 def _register_rostools_subcommands() -> None:
-    # topic list|echo|hz and param list|get|set|dump (`node list` is on the node parser).
-    from .rostools import add_param_parser, add_topic_parser
+    # topic list|echo|hz, param list|get|set|dump and lifecycle get|set|list (`node list`
+    # is on the node parser).
+    from .rostools import add_lifecycle_parser, add_param_parser, add_topic_parser
 
     subcommand(add_topic_parser)
     subcommand(add_param_parser)
+    subcommand(add_lifecycle_parser)
 
 
 _register_rostools_subcommands()
