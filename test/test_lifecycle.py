@@ -141,7 +141,7 @@ def test_an_unavailable_transition_is_refused_with_the_state_and_a_nonzero_exit(
     assert [line for line in text.splitlines() if line.startswith("- ")] == [
         "- deactivate [4]", "- shutdown [7]"], text
     # A node that is not a managed one, and one that is not there.
-    code, _, err = _run(capsys, "lifecycle", "get", "tester", "--timeout", "1")
+    code, _, err = _run(capsys, "lifecycle", "get", "tester", "--timeout", "4")
     assert code == 1 and "/tester is not a managed (lifecycle) node" in err, err
     code, _, err = _run(capsys, "lifecycle", "get", "no_such_node", "--timeout", "1")
     assert code == 1 and "node /no_such_node not found" in err, err
