@@ -9,6 +9,10 @@ in   ``/joint_states``          sensor_msgs/JointState: joint ``camera_rotator``
 out  ``/diagnostics``           state, refusal counts and the last reason
 srv  ``~/reset``                std_srvs/Trigger: forget the accumulated state (and its file)
 
+A managed (lifecycle) node: the topics, the service and the controller exist from configure
+to cleanup; only an active node integrates visits and publishes corrections (docs/ros.md,
+Managed nodes). /diagnostics is published in every state.
+
 Per visit, ``controller: kalman`` (default, :class:`cwfs_ros.ofc.kalman.KalmanOFC`): rotate the
 camera-frame Zernikes into the telescope frame at the visit's rotator angle, subtract the
 design, update a Kalman filter of the DoF state weighted by the corners' reported

@@ -27,6 +27,10 @@ reason, and all of them counted.
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.core.corner_pool.CornerPool`), one corner per worker, warmed up at start.
 The pairing and assembly rules are in :mod:`cwfs_ros.core.visits`.
+
+A managed (lifecycle) node: the workers and topics exist from configure to cleanup; only an
+active node processes images (docs/ros.md, Managed nodes). /diagnostics is published in
+every state.
 """
 
 from __future__ import annotations
