@@ -205,21 +205,8 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
     executor = None
     code = 0
     try:
-        for name, cls in zip(names, classes, strict=True):
-            if not _start_node(name, lambda cls=cls: nodes.append(_construct(cls, ctx))):
-                return 2
-        kinds = {n.get_name(): declared_kinds(n) for n in nodes}
-        problems = [msg for n, k in kinds.items() for msg in check_declared(files, n, k)]
-        problems += check_overrides(argv, kinds)
-        if problems:
-            print("cwfs-ros: error: parameter problems; not running:\n  "
-                  + "\n  ".join(problems), file=sys.stderr)
+        if not _create_nodes(names, classes, ctx, argv, files, nodes, autostart):
             return 2
-        # Managed nodes are configured and activated only once their parameters are known
-        # good: a misspelt override never reaches a running controller.
-        for name, node in zip(names, nodes, strict=True):
-            if autostart and _is_managed(node) and not _start_node(name, node.start):
-                return 2
         executor = MultiThreadedExecutor(num_threads=threads or max(4, os.cpu_count() or 1),
                                          context=ctx)
         for n in nodes:
@@ -239,6 +226,26 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 pass
         ctx.try_shutdown()
     return code
+
+
+def _create_nodes(names: Sequence[str], classes: Sequence[type], ctx, argv: Sequence[str],
+                  files: Sequence[Path], nodes: list, autostart: bool) -> bool:
+    """Create the nodes into ``nodes``, check every parameter name, then configure and
+    activate the managed ones (``autostart``); False, with the reason on stderr, if any
+    step failed.  Managed nodes start only once their parameters are known good: a
+    misspelt override never reaches a running controller."""
+    for name, cls in zip(names, classes, strict=True):
+        if not _start_node(name, lambda cls=cls: nodes.append(_construct(cls, ctx))):
+            return False
+    kinds = {n.get_name(): declared_kinds(n) for n in nodes}
+    problems = [msg for n, k in kinds.items() for msg in check_declared(files, n, k)]
+    problems += check_overrides(argv, kinds)
+    if problems:
+        print("cwfs-ros: error: parameter problems; not running:\n  "
+              + "\n  ".join(problems), file=sys.stderr)
+        return False
+    return all(_start_node(name, node.start) for name, node in zip(names, nodes, strict=True)
+               if autostart and _is_managed(node))
 
 
 def _is_managed(node_or_class) -> bool:

@@ -220,3 +220,27 @@ def test_a_deactivated_wavefront_node_says_it_does_not_process_images(ros_contex
     assert wf.pool is None and wf.lifecycle_state == "unconfigured"
     st = wf.diagnostics()
     assert st.message.startswith("unconfigured") and st.values[0].value == "unconfigured"
+
+
+def test_a_configure_that_fails_exits_nonzero_and_leaves_the_node_unconfigured(
+        ros_context, ros_domain, spin, monkeypatch, capsys, tmp_path):
+    """A managed node whose configure cannot succeed (its selection file is missing): the
+    CLI says the transition failed (exit 1); the node stays unconfigured and reports the
+    reason on /diagnostics as an error."""
+    from cwfs_ros.nodes.common import ERROR
+    from cwfs_ros.nodes.wavefront_node import WavefrontNode
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
+    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
+    missing = tmp_path / "no_such_selection.yaml"
+    wf = spin(WavefrontNode(context=ros_context, autostart=False, parameter_overrides=[
+        Parameter("corners", value=["R00"]), Parameter("workers", value=1),
+        Parameter("selection_config", value=str(missing))]))
+    assert _run(capsys, "lifecycle", "get", "wavefront_node") == (0, "unconfigured [1]\n", "")
+    code, text, err = _run(capsys, "lifecycle", "set", "wavefront_node", "configure")
+    assert code == 1 and text == ""
+    assert "Transitioning failed: /wavefront_node refused 'configure'" in err, err
+    assert wf.lifecycle_state == "unconfigured" and wf.pool is None
+    st = wf.diagnostics()
+    assert st.level == ERROR and "configure failed" in st.message, st.message
+    assert "no_such_selection.yaml" in st.message

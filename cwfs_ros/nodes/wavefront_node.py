@@ -798,6 +798,29 @@ class WavefrontNode(ManagedNode):
             incomplete = self.last_incomplete
             pending_mb = self.pairing.pending_bytes() / 1e6
         self.foreign = foreign_publishers(self, self._owned_topics())
+        level, state, message = self._health(warm, lifecycle, incomplete)
+        values = [("state", state), ("lifecycle", lifecycle),
+                  ("corners", " ".join(self.corners)),
+                  ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
+                  ("assemble", self.assemble), ("settings", str(self.settings)),
+                  *stats.items(), ("pending_images", pending_images),
+                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
+                  ("max_pending_mb", self._param("max_pending_mb")),
+                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
+        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
+        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
+        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
+                   sorted(warm.items())]
+        values += self.rejected.key_values()
+        values += self.qos_events.key_values()
+        return diagnostic_status(name, level, message, values,
+                                 hardware_id="cwfs_corner_sensors")
+
+    def _health(self, warm: dict[str, dict], lifecycle: str,
+                incomplete: tuple[float, str] | None) -> tuple[bytes, str, str]:
+        """(level, state, message) of /diagnostics: the worst condition first."""
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
             level, state = ERROR, "error"
@@ -823,24 +846,7 @@ class WavefrontNode(ManagedNode):
             message = f"ready; a recent visit was published incomplete: {incomplete[1]}"
         else:
             level, state, message = OK, "ready", "ready"
-        values = [("state", state), ("lifecycle", lifecycle),
-                  ("corners", " ".join(self.corners)),
-                  ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
-                  ("assemble", self.assemble), ("settings", str(self.settings)),
-                  *stats.items(), ("pending_images", pending_images),
-                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
-                  ("max_pending_mb", self._param("max_pending_mb")),
-                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
-        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
-                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
-        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
-        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
-        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
-                   sorted(warm.items())]
-        values += self.rejected.key_values()
-        values += self.qos_events.key_values()
-        return diagnostic_status(name, level, message, values,
-                                 hardware_id="cwfs_corner_sensors")
+        return level, state, message
 
     def _owned_topics(self) -> list[str]:
         out = [corner_topic(c) for c in self.corners]
