@@ -43,7 +43,8 @@ EXIT_FLAGGED = 3
 EXIT_CODES = (
     (0, "success"),
     (EXIT_FAILED, "a check failed (demo --check), or a ROS tool found no such node or topic, "
-                  "no message in time, or a parameter the node refused"),
+                  "no message in time, a parameter the node refused, or a lifecycle transition "
+                  "not available or refused"),
     (EXIT_USAGE, "bad input or configuration: usage, a missing or unreadable file, not an "
                  "image, a field outside the instrument's field of view, a bad parameter"),
     (EXIT_FLAGGED, "estimate/batch: an estimate flagged unusable (caustic, implausible); "

@@ -220,6 +220,11 @@ def test_a_deactivated_wavefront_node_says_it_does_not_process_images(ros_contex
     assert wf.pool is None and wf.lifecycle_state == "unconfigured"
     st = wf.diagnostics()
     assert st.message.startswith("unconfigured") and st.values[0].value == "unconfigured"
+    # Configured again: a new pool, warmed, and images taken again.
+    wf.start()
+    wait_for(lambda: wf.ready, 30, "the new workers warm")
+    pub.publish(img)
+    wait_for(lambda: wf.stats["images"] == 1, 10, "the image taken once active")
 
 
 def test_a_configure_that_fails_exits_nonzero_and_leaves_the_node_unconfigured(

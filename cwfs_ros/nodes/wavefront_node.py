@@ -149,6 +149,9 @@ class WavefrontNode(ManagedNode):
         self.pub_corner: dict = {}
         self.pub_vector = None
         self._expiry_timer = None
+        # Counts warm-ups over the node's life (not reset on configure), so that a late
+        # answer of a pool released by cleanup is never taken for the new pool's.
+        self._warm_generation = 0
         self._declare_parameters()
         self._cb_images = MutuallyExclusiveCallbackGroup()
         self._cb_timers = MutuallyExclusiveCallbackGroup()
@@ -191,7 +194,6 @@ class WavefrontNode(ManagedNode):
         # Worker processes, warmed up in the background.
         self.pool = CornerPool(self.corners, p("workers"))
         self._warm: dict[str, dict] = {}
-        self._warm_generation = 0
         self._start_warm_up()
         self._create_topics(img_qos)
         self.get_logger().info(
