@@ -596,7 +596,7 @@ def lifecycle_set(args: argparse.Namespace) -> int:
     node's current state, so that a refusal names the state and the transitions there are.
     The change itself is sent once (a repeat could be a second transition)."""
     from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions
+    from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
     want = args.transition
     with _lifecycle_clients(args) as (executor, full, clients):
@@ -606,7 +606,9 @@ def lifecycle_set(args: argparse.Namespace) -> int:
         match = [t for t in transitions
                  if t.transition.label == want or str(t.transition.id) == want]
         if not match:
-            start = transitions[0].start_state.label if transitions else "a final state"
+            start = (transitions[0].start_state.label if transitions else _query(
+                executor, clients["get_state"], GetState.Request(),
+                args.timeout).current_state.label)
             there = ", ".join(t.transition.label for t in transitions)
             raise ToolError(f"{full}: transition {want!r} is not available from state "
                             f"{start}; available: {there or 'none'}")

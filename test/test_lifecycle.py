@@ -185,13 +185,16 @@ def test_bringup_starts_both_nodes_active_and_no_autostart_leaves_them_for_the_c
              ("shutdown", "finalized")]
     script = [("lifecycle", "get", "wavefront_node")]
     script += [("lifecycle", "set", "ofc_node", t) for t, _ in steps[1:]]
-    script += [("lifecycle", "get", "ofc_node")]
+    script += [("lifecycle", "get", "ofc_node"), ("lifecycle", "set", "ofc_node", "configure")]
     seen = run(False, script)
     assert seen["states"] == {"wavefront_node": "unconfigured", "ofc_node": "unconfigured"}
     assert seen["cli"][0] == (0, "unconfigured [1]\n", ""), seen["cli"]
-    for (code, text, err), (step, _) in zip(seen["cli"][1:-1], steps[1:], strict=True):
+    for (code, text, err), (step, _) in zip(seen["cli"][1:-2], steps[1:], strict=True):
         assert (code, text) == (0, "Transitioning successful\n"), (step, err)
-    assert seen["cli"][-1] == (0, "finalized [4]\n", "")
+    assert seen["cli"][-2] == (0, "finalized [4]\n", "")
+    code, text, err = seen["cli"][-1]
+    assert code == 1 and text == "", err
+    assert "'configure' is not available from state finalized; available: none" in err, err
     assert seen["final"] == {"wavefront_node": "unconfigured", "ofc_node": "finalized"}
 
 
