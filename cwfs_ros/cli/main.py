@@ -45,7 +45,8 @@ EXIT_FLAGGED = 3
 EXIT_CODES = (
     (0, "success"),
     (EXIT_FAILED, "a check failed (demo --check), or a ROS tool found no such node or topic, "
-                  "no message in time, or a parameter the node refused"),
+                  "no message in time, a parameter the node refused, or a lifecycle transition "
+                  "not available or refused"),
     (EXIT_USAGE, "bad input or configuration: usage, a missing or unreadable file, not an "
                  "image, a field outside the instrument's field of view, a bad parameter"),
     (EXIT_FLAGGED, "estimate/batch: an estimate flagged unusable (caustic, implausible); "
@@ -473,11 +474,13 @@ _register_validate_subcommand()
 
 
 def _register_rostools_subcommands() -> None:
-    # topic list|echo|hz and param list|get|set|dump (`node list` is on the node parser).
-    from cwfs_ros.ros.tools import add_param_parser, add_topic_parser
+    # topic list|echo|hz, param list|get|set|dump and lifecycle get|set|list (`node list`
+    # is on the node parser).
+    from cwfs_ros.ros.tools import add_lifecycle_parser, add_param_parser, add_topic_parser
 
     subcommand(add_topic_parser)
     subcommand(add_param_parser)
+    subcommand(add_lifecycle_parser)
 
 
 _register_rostools_subcommands()

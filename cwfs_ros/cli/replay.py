@@ -98,9 +98,8 @@ def node_parameters(node: str, params_files: Sequence[str | Path] = ()) -> dict[
     names (``sensors.R00.intra.rot90``), later sections and files overriding earlier ones.
     Raises ConfigError for an unreadable file.
     """
-    from cwfs_ros.errors import ConfigError
-    from cwfs_ros.ros.launch import default_params_file
-    from cwfs_ros.ros.params import ParamsFileError, read_params_file
+    from cwfs_ros.errors import ConfigError, ParamsFileError
+    from cwfs_ros.ros.params import default_params_file, read_params_file
 
     files = [default_params_file(), *map(Path, params_files)]
     out: dict[str, Any] = {}

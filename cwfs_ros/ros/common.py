@@ -38,11 +38,13 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 __all__ = [
     "DIAGNOSTICS_QOS",
     "IMAGE_QOS",
+    "ManagedNode",
     "OUTPUT_QOS",
     "QosEventMonitor",
     "image_qos",
@@ -122,7 +124,7 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
     file and the key, as is a parameter the file lacks.
     """
     from cwfs_ros.errors import ConfigError
-    from cwfs_ros.ros.launch import default_params_file
+    from cwfs_ros.ros.params import default_params_file
 
     path = str(default_params_file())
     values = _bundled_params(path).get(section, {})
@@ -387,3 +389,115 @@ class QosEventMonitor:
 def _policy_name(kind) -> str:
     name = getattr(kind, "name", str(kind))
     return name.replace("RMW_QOS_POLICY_", "").lower()
+
+
+class ManagedNode(LifecycleNode):
+    """A lifecycle node whose resources exist only between configure and cleanup.
+
+    Subclasses declare their parameters and the always-on parts (/diagnostics, parameter
+    callbacks) in ``__init__``, and build everything else in :meth:`_configure_resources`
+    (read the parameters, start workers, load state, create the topics), released again by
+    :meth:`_release_resources` on cleanup, shutdown, an error or ``destroy_node``. rclpy turns
+    an exception in a transition callback into a bare ERROR; here the exception of a failed
+    configure is kept in :attr:`configure_error`, logged, and raised again by :meth:`start`,
+    so that a node built and started in one go (``autostart``) fails with the reason, as a
+    plain node failing in its constructor would.
+    """
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.configure_error: BaseException | None = None
+        self.configured = False
+
+    # ------------------------------------------------------------------ subclass hooks
+    def _configure_resources(self) -> None:
+        """Read the parameters and build the node's resources (raise to refuse)."""
+        raise NotImplementedError
+
+    def _release_resources(self) -> None:
+        """Release what :meth:`_configure_resources` built (also after a partial build)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ state
+    @property
+    def lifecycle_state(self) -> str:
+        """The lifecycle state's label: unconfigured, inactive, active, finalized, or a
+        transition state such as deactivating."""
+        return str(self._state_machine.current_state[1])
+
+    @property
+    def is_active(self) -> bool:
+        return self.lifecycle_state == "active"
+
+    def start(self, activate: bool = True) -> None:
+        """Configure, then activate unless ``activate`` is False; raise why either failed."""
+        if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+            raise self.configure_error or RuntimeError(f"{self.get_name()}: configure failed")
+        if activate and self.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+            raise RuntimeError(f"{self.get_name()}: activate failed")
+
+    # ------------------------------------------------------------------ transitions
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.configure_error = None
+        try:
+            self._configure_resources()
+        except Exception as exc:  # noqa: BLE001 - kept and reported; the node stays unconfigured
+            self.configure_error = exc
+            self.get_logger().error(f"configure failed: {type(exc).__name__}: {exc}")
+            self._release_quietly()
+            return TransitionCallbackReturn.FAILURE
+        self.configured = True
+        return super().on_configure(state)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        ret = super().on_activate(state)  # enables the lifecycle publishers
+        self.get_logger().info("active")
+        return ret
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        ret = super().on_deactivate(state)
+        self.get_logger().info(f"inactive: {self._inactive_effect()}")
+        return ret
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release_quietly()
+        self.get_logger().info("unconfigured: resources released")
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release_quietly()
+        return super().on_shutdown(state)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        # A transition raised: release everything and go back to unconfigured.
+        self._release_quietly()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _inactive_effect(self) -> str:
+        """What an inactive node does not do, for the log and /diagnostics."""
+        return "paused"
+
+    def _release_quietly(self) -> None:
+        self.configured = False
+        try:
+            self._release_resources()
+        except Exception as exc:  # noqa: BLE001 - releasing must not fail a transition
+            self.get_logger().error(f"releasing resources: {type(exc).__name__}: {exc}")
+
+    def lifecycle_status(self, name: str, hardware_id: str) -> DiagnosticStatus | None:
+        """The /diagnostics status of a node that is not configured, else None."""
+        if self.configured:
+            return None
+        state = self.lifecycle_state
+        if self.configure_error is not None:
+            level, message = ERROR, (f"{state}: configure failed: "
+                                     f"{type(self.configure_error).__name__}: "
+                                     f"{self.configure_error}")
+        else:
+            level, message = WARN, f"{state}: not configured (no inputs taken, no outputs)"
+        return diagnostic_status(name, level, message, [("lifecycle", state)],
+                                 hardware_id=hardware_id)
+
+    def destroy_node(self) -> None:
+        self._release_quietly()
+        super().destroy_node()

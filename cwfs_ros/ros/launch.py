@@ -11,6 +11,10 @@ project's launcher:
 * the executables ``wavefront_node`` / ``ofc_node`` (``ros2 run``-style) call
   :func:`run_node_main`.
 
+wavefront_node and ofc_node are managed (lifecycle) nodes: they are created unconfigured,
+their parameters are checked, and then they are configured and activated, unless
+``--no-autostart`` leaves them unconfigured for ``cwfs-ros lifecycle set``.
+
 Parameters come from ``config/params.yaml`` (``ros__parameters`` keyed by node name), then
 from each ``--params FILE`` in order (later files win), then from ``--ros-args`` (``-p``,
 ``--params-file``, remappings, ``--log-level`` ...), exactly as rcl orders them. Before ROS
@@ -37,7 +41,7 @@ from pathlib import Path
 from cwfs_ros.config import config_dir
 from cwfs_ros.errors import LaunchError
 from cwfs_ros.ros.dds import ensure_fastdds_profile
-from cwfs_ros.ros.params import check_declared, check_overrides
+from cwfs_ros.ros.params import check_declared, check_overrides, default_params_file
 from cwfs_ros.runtime.threads import limit_blas_threads
 
 __all__ = [
@@ -64,10 +68,6 @@ NODES: dict[str, tuple[str, str]] = {
 }
 BRINGUP_NODES: tuple[str, ...] = ("wavefront_node", "ofc_node")
 SIM_NODE = "camera_sim_node"
-
-
-def default_params_file() -> Path:
-    return config_dir() / "params.yaml"
 
 
 def ros_arguments(params_files: Sequence[str | Path] = (),
@@ -139,7 +139,7 @@ def spin_until_shutdown(executor) -> None:
 
 def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
               ros_args: Sequence[str] = (), context=None, domain_id: int | None = None,
-              threads: int = 0, on_ready=None) -> int:
+              threads: int = 0, on_ready=None, autostart: bool = True) -> int:
     """Start the named nodes in this process on one MultiThreadedExecutor; spin until shutdown.
 
     Args:
@@ -151,11 +151,15 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
             ``ROS_DOMAIN_ID``).
         threads: executor threads (0 = max(4, CPUs)).
         on_ready: optional callable(nodes, executor) called once the nodes exist.
+        autostart: configure and activate the managed (lifecycle) nodes once their
+            parameters are checked; False leaves them unconfigured, for an operator or a
+            lifecycle manager (``cwfs-ros lifecycle set NODE configure``).
 
     Returns:
         Process exit code (0 after a clean shutdown, 2 when a node could not start).
     """
-    from cwfs_ros.ros.params import ParamsFileError, read_params_file
+    from cwfs_ros.errors import ParamsFileError
+    from cwfs_ros.ros.params import read_params_file
 
     ensure_fastdds_profile()
     try:
@@ -187,19 +191,7 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
     executor = None
     code = 0
     try:
-        for name, cls in zip(names, classes, strict=True):
-            try:
-                nodes.append(cls(context=ctx))
-            except Exception as exc:  # noqa: BLE001 - report any start-up failure clearly
-                print(f"cwfs-ros: error: {name} could not start: {type(exc).__name__}: {exc}",
-                      file=sys.stderr)
-                return 2
-        kinds = {n.get_name(): declared_kinds(n) for n in nodes}
-        problems = [msg for n, k in kinds.items() for msg in check_declared(files, n, k)]
-        problems += check_overrides(argv, kinds)
-        if problems:
-            print("cwfs-ros: error: parameter problems; not running:\n  "
-                  + "\n  ".join(problems), file=sys.stderr)
+        if not _create_nodes(names, classes, ctx, argv, files, nodes, autostart):
             return 2
         executor = MultiThreadedExecutor(num_threads=threads or max(4, os.cpu_count() or 1),
                                          context=ctx)
@@ -220,6 +212,49 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 pass
         ctx.try_shutdown()
     return code
+
+
+def _create_nodes(names: Sequence[str], classes: Sequence[type], ctx, argv: Sequence[str],
+                  files: Sequence[Path], nodes: list, autostart: bool) -> bool:
+    """Create the nodes into ``nodes``, check every parameter name, then configure and
+    activate the managed ones (``autostart``); False, with the reason on stderr, if any
+    step failed.  Managed nodes start only once their parameters are known good: a
+    misspelt override never reaches a running controller."""
+    for name, cls in zip(names, classes, strict=True):
+        if not _start_node(name, lambda cls=cls: nodes.append(_construct(cls, ctx))):
+            return False
+    kinds = {n.get_name(): declared_kinds(n) for n in nodes}
+    problems = [msg for n, k in kinds.items() for msg in check_declared(files, n, k)]
+    problems += check_overrides(argv, kinds)
+    if problems:
+        print("cwfs-ros: error: parameter problems; not running:\n  "
+              + "\n  ".join(problems), file=sys.stderr)
+        return False
+    return all(_start_node(name, node.start) for name, node in zip(names, nodes, strict=True)
+               if autostart and _is_managed(node))
+
+
+def _is_managed(node_or_class) -> bool:
+    from cwfs_ros.ros.common import ManagedNode
+
+    cls = node_or_class if isinstance(node_or_class, type) else type(node_or_class)
+    return issubclass(cls, ManagedNode)
+
+
+def _construct(cls: type, ctx):
+    """A node of ``cls``; a managed one unconfigured (started after the parameter check)."""
+    return cls(context=ctx, autostart=False) if _is_managed(cls) else cls(context=ctx)
+
+
+def _start_node(name: str, step) -> bool:
+    """Run a start-up step of node ``name``; on failure say why on stderr and return False."""
+    try:
+        step()
+        return True
+    except Exception as exc:  # noqa: BLE001 - report any start-up failure clearly
+        print(f"cwfs-ros: error: {name} could not start: {type(exc).__name__}: {exc}",
+              file=sys.stderr)
+        return False
 
 
 def _params_files_of(argv: Sequence[str]) -> list[Path]:
@@ -253,8 +288,11 @@ def run_node_main(name: str, argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog=name, description=f"Run {name} (cwfs_ros).")
     ap.add_argument("--params", action="append", default=[], metavar="FILE",
                     help="extra ROS parameter YAML over config/params.yaml (repeatable)")
+    ap.add_argument("--no-autostart", action="store_true",
+                    help="leave the node unconfigured (cwfs-ros lifecycle set NODE configure)")
     args = ap.parse_args(own)
-    return run_nodes([name], params_files=args.params, ros_args=ros)
+    return run_nodes([name], params_files=args.params, ros_args=ros,
+                     autostart=not args.no_autostart)
 
 
 # -------------------------------------------------------------------- argparse subcommands
@@ -262,6 +300,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", action="append", default=[], metavar="FILE",
                    help="ROS parameter YAML overlaid on config/params.yaml (repeatable; "
                         "ros__parameters keyed by node name)")
+    p.add_argument("--no-autostart", action="store_true",
+                   help="leave wavefront_node and ofc_node unconfigured (managed nodes: "
+                        "configure and activate them with `cwfs-ros lifecycle set NODE "
+                        "configure|activate`); by default they are configured and activated")
     p.add_argument("--threads", type=int, default=0,
                    help="executor threads (default max(4, CPUs))")
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
@@ -290,7 +332,7 @@ def cmd_bringup(args: argparse.Namespace) -> int:
               f"({DISCOVERY_ENV}={SIM_DISCOVERY_RANGE}; --visible to open it)",
               file=sys.stderr, flush=True)
     return run_nodes(names, params_files=files, ros_args=args.ros_args or [],
-                     threads=args.threads)
+                     threads=args.threads, autostart=not args.no_autostart)
 
 
 def cmd_node(args: argparse.Namespace) -> int:
@@ -299,7 +341,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 
         return node_list(args.all, args.spin_time)
     return run_nodes([args.name], params_files=args.params, ros_args=args.ros_args or [],
-                     threads=args.threads)
+                     threads=args.threads, autostart=not args.no_autostart)
 
 
 def add_bringup_parser(subparsers) -> argparse.ArgumentParser:

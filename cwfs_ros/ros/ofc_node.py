@@ -9,6 +9,10 @@ in   ``/joint_states``          sensor_msgs/JointState: joint ``camera_rotator``
 out  ``/diagnostics``           state, refusal counts and the last reason
 srv  ``~/reset``                std_srvs/Trigger: forget the accumulated state (and its file)
 
+A managed (lifecycle) node: the topics, the service and the controller exist from configure
+to cleanup; only an active node integrates visits and publishes corrections (docs/ros.md,
+Managed nodes). /diagnostics is published in every state.
+
 Per visit, ``controller: kalman`` (default, :class:`cwfs_ros.ofc.kalman.KalmanOFC`): rotate the
 camera-frame Zernikes into the telescope frame at the visit's rotator angle, subtract the
 design, update a Kalman filter of the DoF state weighted by the corners' reported
@@ -48,7 +52,6 @@ import numpy as np
 from cwfs_msgs.msg import DofCorrection, WavefrontVector
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -75,6 +78,7 @@ from cwfs_ros.ros.common import (
     OK,
     OUTPUT_QOS,
     WARN,
+    ManagedNode,
     RejectionCounter,
     SequenceGaps,
     bundled_declarer,
@@ -105,32 +109,54 @@ sensitivity = C.sensitivity_for_source
 build_solver = controller_from_params
 
 
-class OfcNode(Node):
-    """Optical feedback controller node. Keyword arguments go to :class:`rclpy.node.Node`."""
+class OfcNode(ManagedNode):
+    """Optical feedback controller node, a lifecycle (managed) node.
 
-    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+    ``autostart`` (default) configures and activates it at once, as ``cwfs-ros bringup``
+    does; with ``autostart=False`` it starts unconfigured, with its parameters declared and
+    /diagnostics published, and waits for ``configure`` (controller built, state file read,
+    topics and ``~/reset`` created) and ``activate``. An inactive node integrates no visit
+    and publishes no DofCorrection at all: it counts and logs what it ignores. Keyword
+    arguments go to :class:`rclpy.node.Node`.
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, *, autostart: bool = True,
+                 **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self._lock = threading.RLock()
+        self.solver: C.OFCSolver | None = None
+        self.pub = self.sub = self.sub_joints = self.srv = None
         self._declare_parameters()
-        self.solver = build_solver(self._param)
-        self.dry_run = bool(self._param("dry_run"))
-        self.frame_id = str(self._param("frame_id"))
-        self._warm(self.solver)
-        self._init_guards()
-        self.refused = RejectionCounter()
-        self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
-                      "resets": 0, "rotator_samples": 0, "rotator_samples_ignored": 0,
-                      "state_saves_failed": 0}
-        self.last_status = "none yet"
-        self.last_ms = float("nan")
-        self.last_result: C.OFCResult | None = None
-        self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
-        self.state_file = str(self._param("state_file"))
-        self.state_problem: str | None = None
-        self.save_problem: str | None = None
-        self._load_state()
-        self.pub = self.create_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._diag_timer = self.create_timer(self._param("diagnostics_period_s"),
+                                             self.publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        if autostart:
+            self.start()
+
+    def _configure_resources(self) -> None:
+        """configure: the controller, the input guards, the state file and the topics."""
+        with self._lock:
+            self.solver = build_solver(self._param)
+            self.dry_run = bool(self._param("dry_run"))
+            self.frame_id = str(self._param("frame_id"))
+            self._warm(self.solver)
+            self._init_guards()
+            self.refused = RejectionCounter()
+            self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
+                          "resets": 0, "rotator_samples": 0, "rotator_samples_ignored": 0,
+                          "state_saves_failed": 0, "vectors_inactive": 0}
+            self.last_status = "none yet"
+            self.last_ms = float("nan")
+            self.last_result: C.OFCResult | None = None
+            self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
+            self.state_file = str(self._param("state_file"))
+            self.state_problem: str | None = None
+            self.save_problem: str | None = None
+            self._load_state()
+        # A managed publisher: whatever path reaches it, nothing goes out unless active.
+        self.pub = self.create_lifecycle_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC,
                                             self._on_vector_info, OUTPUT_QOS)
         # Joint states come at the rotator's rate: a deeper queue than the outputs', so that a
@@ -138,16 +164,29 @@ class OfcNode(Node):
         self.sub_joints = self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
                                                    100)
         self.srv = self.create_service(Trigger, "~/reset", self._on_reset)
-        self._diag_timer = self.create_timer(self._param("diagnostics_period_s"),
-                                             self.publish_diagnostics)
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
-            f"OFC ready: controller {self._param('controller')}, matrix "
+            f"OFC configured: controller {self._param('controller')}, matrix "
             f"{self._param('matrix_source')}, band {self.solver.band}, rotator "
             f"{self._param('rotator_angle_source')}, allow_partial "
             f"{self.solver.allow_partial}, dry_run {self.dry_run}, state_file "
             f"{self.state_file or '(none)'}")
+
+    def _release_resources(self) -> None:
+        """cleanup / shutdown: the topics, the service and the controller (its state is in
+        the state file after every applied visit, and read again on configure)."""
+        for sub in (self.sub, self.sub_joints):
+            if sub is not None:
+                self.destroy_subscription(sub)
+        if self.srv is not None:
+            self.destroy_service(self.srv)
+        if self.pub is not None:
+            self.destroy_lifecycle_publisher(self.pub)
+        self.pub = self.sub = self.sub_joints = self.srv = None
+        with self._lock:
+            self.solver = None
+
+    def _inactive_effect(self) -> str:
+        return "vectors are not integrated and no DofCorrection is published"
 
     # ------------------------------------------------------------------ parameters
     def _param(self, name: str):
@@ -272,6 +311,8 @@ class OfcNode(Node):
     def _apply_parameters(self, params: Sequence[Parameter]) -> None:
         names = {p.name for p in params}
         with self._lock:
+            if self.solver is None:
+                return  # unconfigured: the values are read on configure
             self.dry_run = bool(self._param("dry_run"))
             self.frame_id = str(self._param("frame_id"))
             if names & set(_SOLVER_PARAMS):
@@ -295,7 +336,8 @@ class OfcNode(Node):
         self.foreign: list[str] = []
 
     def _on_vector_info(self, msg: WavefrontVector, info) -> None:
-        """The subscription's callback: count what the queue dropped, then handle it."""
+        """The subscription's callback: count what the queue dropped, then handle it (or,
+        inactive, count and log it as ignored: no state change, no output)."""
         gap = self.queue_gaps.note(info)
         if gap:
             self.guard_counts.add("queue_dropped", f"{gap} vector(s) dropped by the "
@@ -303,7 +345,21 @@ class OfcNode(Node):
             self._log_guard("queue_dropped", f"{gap} vector(s) dropped by the subscription "
                             f"queue before visit {msg.header.stamp.sec}; "
                             f"{self.queue_gaps.dropped} in all")
+        if not self.is_active:
+            self._ignore_inactive(msg)
+            return
         self._on_vector(msg)
+
+    def _ignore_inactive(self, msg: WavefrontVector) -> None:
+        state = self.lifecycle_state
+        with self._lock:
+            self.stats["vectors_inactive"] += 1
+        self.guard_counts.add("inactive", f"visit {msg.header.stamp.sec}: ignored, the node is "
+                              f"{state}")
+        self._log_guard("inactive", f"{state}: visit {msg.header.stamp.sec}."
+                        f"{msg.header.stamp.nanosec:09d} ignored: not integrated, no correction "
+                        f"published (activate: cwfs-ros lifecycle set {self.get_name()} "
+                        "activate)")
 
     def _log_guard(self, reason: str, text: str) -> None:
         due, n = self.guard_counts.log_due(reason, float(self._param("log_throttle_s")))
@@ -550,10 +606,18 @@ class OfcNode(Node):
 
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self):
+        name = f"{self.get_name()}: optical feedback control"
+        unconfigured = self.lifecycle_status(name, "aos_ofc")
+        if unconfigured is not None:
+            return unconfigured
+        lifecycle = self.lifecycle_state
         with self._lock:
             stats = dict(self.stats)
             s = self.solver
-            values = [("state", "ready"), ("controller", self._param("controller")),
+            if s is None:  # released while this ran
+                return self.lifecycle_status(name, "aos_ofc")
+            values = [("state", "ready"), ("lifecycle", lifecycle),
+                      ("controller", self._param("controller")),
                       ("matrix_source", self._param("matrix_source")),
                       ("method", s.method), ("n_modes", s.n_modes), ("kp", s.kp), ("ki", s.ki),
                       ("band", s.band), ("allow_partial", s.allow_partial),
@@ -568,14 +632,15 @@ class OfcNode(Node):
         values += self._guard_values()
         if self.state_problem is not None or self.save_problem is not None:
             level, message = ERROR, str(self.state_problem or self.save_problem)
+        elif lifecycle != "active":
+            level, message = WARN, f"{lifecycle}: {self._inactive_effect()}"
         elif self.foreign:
             level, message = WARN, f"another publisher on the correction topic: {self.foreign[0]}"
         elif self.refused.recent(10.0):
             level, message = WARN, f"recently refused a visit: {self.refused.last_message}"
         else:
             level, message = OK, "ready"
-        return diagnostic_status(f"{self.get_name()}: optical feedback control", level,
-                                 message, values, hardware_id="aos_ofc")
+        return diagnostic_status(name, level, message, values, hardware_id="aos_ofc")
 
     def _last_values(self) -> list[tuple[str, object]]:
         r = self.last_result

@@ -17,10 +17,16 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ParamsFileError
 
-__all__ = ["ParamsFileError", "check_declared", "check_overrides", "close_match", "flatten",
+__all__ = ["check_declared", "check_overrides", "close_match", "default_params_file", "flatten",
            "read_params_file", "yaml_kind"]
+
+
+def default_params_file() -> Path:
+    """The parameters every node starts from: ``config/params.yaml``."""
+    return config_dir() / "params.yaml"
 
 
 def flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -11,7 +11,11 @@ output formats:
 * ``cwfs-ros param list NODE [--param-type]``, ``param get NODE NAME`` (``Double value is:
   0.18``), ``param set NODE NAME VALUE`` (the value read as YAML, as ``ros2 param set`` does),
   ``param dump NODE`` (a parameter file: ``/NODE: ros__parameters: ...``);
-* ``cwfs-ros node list [-a]``.
+* ``cwfs-ros node list [-a]``;
+* ``cwfs-ros lifecycle get NODE`` (``active [3]``), ``lifecycle set NODE TRANSITION``
+  (``Transitioning successful``), ``lifecycle list NODE`` (the transitions available now,
+  each as ``- activate [3]`` with its start and goal states), through the node's
+  ``lifecycle_msgs`` services.
 
 Each command runs its own hidden node (``_cwfs_ros_cli_<pid>``) on the domain of
 ``ROS_DOMAIN_ID``; there is no daemon, so a command first waits for discovery: up to
@@ -20,8 +24,9 @@ until another node is known and the graph has not changed for 0.75 s (at most 4 
 A graph started isolated (``cwfs-ros demo``; ``bringup --sim`` without ``--visible``) is
 not visible to these tools by design.
 
-Exit status: 0 done; 1 the node or topic was not found, a parameter was not set, or no
-message came within ``--timeout`` (each with one line on stderr saying which); 2 usage.
+Exit status: 0 done; 1 the node or topic was not found, a parameter was not set, a
+transition is not available or failed, or no message came within ``--timeout`` (each with
+one line on stderr saying which); 2 usage.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ __all__ = [
     "EXIT_NOT_FOUND",
     "ToolError",
     "add_node_list_arguments",
+    "add_lifecycle_parser",
     "add_param_parser",
     "add_topic_parser",
     "hz_report",
@@ -518,5 +524,126 @@ def add_param_parser(subparsers: Any) -> argparse.ArgumentParser:
         if verb == "get":
             v.add_argument("--hide-type", action="store_true",
                            help="print the value alone")
+        v.set_defaults(func=func)
+    return p
+
+
+# ---------------------------------------------------------------------------- lifecycle
+_SERVICES = {"get_state": "GetState", "get_available_transitions": "GetAvailableTransitions",
+             "change_state": "ChangeState"}
+_RESEND_S = 1.0
+
+
+@contextmanager
+def _lifecycle_clients(args: argparse.Namespace) -> Iterator[tuple[Any, str, dict[str, Any]]]:
+    """The tool's executor, the node's full name and a ready client of each of its lifecycle
+    services.  The clients are made together, so that the node discovers their endpoints
+    together: the answer to the first query then says the others' answers can reach us."""
+    import lifecycle_msgs.srv as srv
+
+    with graph_node() as (node, executor):
+        full = _wait_for_node(node, executor, args.node, args.timeout)
+        clients = {name: node.create_client(getattr(srv, kind), f"{full}/{name}")
+                   for name, kind in _SERVICES.items()}
+        if not _wait_until(executor, lambda: all(c.service_is_ready()
+                                                 for c in clients.values()), args.timeout):
+            raise ToolError(f"{full} is not a managed (lifecycle) node: it offers no "
+                            f"{full}/get_state (waited {args.timeout:g} s)")
+        yield executor, full, clients
+
+
+def _query(executor: Any, client: Any, request: Any, timeout_s: float) -> Any:
+    """A read-only service's answer, the request sent again every second: a reply sent
+    before the node has discovered this new process's reader is lost (rmw_fastrtps drops
+    it), and a query is safe to repeat."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        future = client.call_async(request)
+        executor.spin_until_future_complete(
+            future, timeout_sec=min(_RESEND_S, max(0.0, t_end - time.monotonic())))
+        if future.done() and future.result() is not None:
+            return future.result()
+        client.remove_pending_request(future)
+    raise ToolError(f"service {client.srv_name} did not answer within {timeout_s:g} s")
+
+
+def lifecycle_get(args: argparse.Namespace) -> int:
+    from lifecycle_msgs.srv import GetState
+
+    with _lifecycle_clients(args) as (executor, _, clients):
+        resp = _query(executor, clients["get_state"], GetState.Request(), args.timeout)
+    print(f"{resp.current_state.label} [{resp.current_state.id}]")
+    return 0
+
+
+def lifecycle_list(args: argparse.Namespace) -> int:
+    from lifecycle_msgs.srv import GetAvailableTransitions
+
+    with _lifecycle_clients(args) as (executor, _, clients):
+        resp = _query(executor, clients["get_available_transitions"],
+                      GetAvailableTransitions.Request(), args.timeout)
+    for t in resp.available_transitions:
+        print(f"- {t.transition.label} [{t.transition.id}]\n\tStart: {t.start_state.label}"
+              f"\n\tGoal: {t.goal_state.label}")
+    return 0
+
+
+def lifecycle_set(args: argparse.Namespace) -> int:
+    """Ask for a transition by label (or id), after checking it is available from the
+    node's current state, so that a refusal names the state and the transitions there are.
+    The change itself is sent once (a repeat could be a second transition)."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
+
+    want = args.transition
+    with _lifecycle_clients(args) as (executor, full, clients):
+        transitions = _query(executor, clients["get_available_transitions"],
+                             GetAvailableTransitions.Request(),
+                             args.timeout).available_transitions
+        match = [t for t in transitions
+                 if t.transition.label == want or str(t.transition.id) == want]
+        if not match:
+            start = (transitions[0].start_state.label if transitions else _query(
+                executor, clients["get_state"], GetState.Request(),
+                args.timeout).current_state.label)
+            there = ", ".join(t.transition.label for t in transitions)
+            raise ToolError(f"{full}: transition {want!r} is not available from state "
+                            f"{start}; available: {there or 'none'}")
+        future = clients["change_state"].call_async(ChangeState.Request(
+            transition=Transition(id=match[0].transition.id, label=match[0].transition.label)))
+        executor.spin_until_future_complete(future, timeout_sec=args.timeout)
+        if not future.done() or future.result() is None:
+            raise ToolError(f"{full} did not answer the {want} request within "
+                            f"{args.timeout:g} s: it may or may not have changed state "
+                            f"(`cwfs-ros lifecycle get {args.node}`)")
+        ok = future.result().success
+    if not ok:
+        raise ToolError(f"Transitioning failed: {full} refused {want!r} (its log says why; "
+                        f"`cwfs-ros lifecycle get {args.node}` shows the state it is in)")
+    print("Transitioning successful")
+    return 0
+
+
+def add_lifecycle_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``lifecycle get|set|list`` (sets ``func``)."""
+    p = subparsers.add_parser(
+        "lifecycle", help="get or change the state of a managed node (get, set, list)",
+        description="Read and change the lifecycle state of a managed node (wavefront_node, "
+                    "ofc_node), as `ros2 lifecycle` does (domain: ROS_DOMAIN_ID). "
+                    "Transitions: configure, activate, deactivate, cleanup, shutdown.")
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+    spec = {"get": ("print the current state, e.g. `active [3]`", lifecycle_get),
+            "set": ("trigger a transition (configure, activate, deactivate, cleanup, "
+                    "shutdown)", lifecycle_set),
+            "list": ("print the transitions available from the current state",
+                     lifecycle_list)}
+    for verb, (helptext, func) in spec.items():
+        v = verbs.add_parser(verb, help=helptext, description=helptext)
+        v.add_argument("node", metavar="NODE", help="node name, e.g. ofc_node or /ofc_node")
+        if verb == "set":
+            v.add_argument("transition", metavar="TRANSITION",
+                           help="transition label (or id)")
+        v.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
+                       help="seconds to wait for the node and each answer (default: 5)")
         v.set_defaults(func=func)
     return p

@@ -27,6 +27,10 @@ reason, and all of them counted.
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
 The pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
+
+A managed (lifecycle) node: the workers and topics exist from configure to cleanup; only an
+active node processes images (docs/ros.md, Managed nodes). /diagnostics is published in
+every state.
 """
 
 from __future__ import annotations
@@ -43,7 +47,6 @@ from cwfs_msgs.msg import CornerWavefront, WavefrontVector
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
@@ -57,6 +60,7 @@ from cwfs_ros.ros.common import (
     OK,
     OUTPUT_QOS,
     WARN,
+    ManagedNode,
     QosEventMonitor,
     RejectionCounter,
     SequenceGaps,
@@ -105,39 +109,49 @@ _WARM_ATTEMPTS = 2  # a corner's warm-up is retried once (a worker killed while 
 
 
 
-class WavefrontNode(Node):
+class WavefrontNode(ManagedNode):
     """Pairs images, estimates corners in parallel processes, publishes the wavefronts.
+
+    A lifecycle (managed) node. ``autostart`` (default) configures and activates it at once,
+    as ``cwfs-ros bringup`` does; with ``autostart=False`` it starts unconfigured, with its
+    parameters declared and /diagnostics published. ``configure`` reads the parameters,
+    starts and warms the worker processes and creates the topics; ``activate`` starts taking
+    images; ``deactivate`` stops: images that arrive are counted, logged and reported on
+    /diagnostics as ``inactive`` but not processed; ``cleanup`` stops the workers.
 
     Keyword arguments go to :class:`rclpy.node.Node` (``context``, ``parameter_overrides``,
     ``cli_args``, ``namespace`` ...).
     """
 
-    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+    def __init__(self, node_name: str = NODE_NAME, *, autostart: bool = True,
+                 **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self._lock = threading.RLock()
+        self.pool: CornerPool | None = None
+        self._subs: list = []
+        self.pub_corner: dict = {}
+        self.pub_vector = None
+        self._expiry_timer = None
+        # Counts warm-ups over the node's life (not reset on configure), so that a late
+        # answer of a pool released by cleanup is never taken for the new pool's.
+        self._warm_generation = 0
         self._declare_parameters()
+        self._cb_images = MutuallyExclusiveCallbackGroup()
+        self._cb_timers = MutuallyExclusiveCallbackGroup()
+        self._cb_remote = ReentrantCallbackGroup()
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._diag_timer = self.create_timer(self._param("diagnostics_period_s"),
+                                             self.publish_diagnostics,
+                                             callback_group=self._cb_timers)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        if autostart:
+            self.start()
+
+    def _configure_resources(self) -> None:
+        """configure: parameters read and checked, worker pool started, topics created."""
         p = self._param
-        corners = list(p("corners"))
-        bad = [c for c in corners if c not in CORNERS] or ([] if corners else ["(none)"])
-        if bad or len(set(corners)) != len(corners):
-            raise ConfigError(f"parameter corners must be distinct names among {CORNERS}, "
-                              f"got {corners}")
-        self.corners = tuple(c for c in CORNERS if c in corners)
-        self.fields = load_corner_fields(p("sensor_config") or None)
-        missing = [c for c in self.corners if c not in self.fields]
-        if missing:
-            raise ConfigError(f"no field points for corners {missing} in the sensor config")
-        self.settings = self._settings_from(lambda n: p(n))
-        validate_settings(self.settings)
-        # A bad selection file stops the node at start, as a bad sensor file does, rather
-        # than making every frame visit invalid (the workers read it per visit).
-        load_selection_config(p("selection_config") or None, solver=self.settings.solver)
-        self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
-                             for c in self.corners for s in SIDES}
-        self.frame_id = p("frame_id")
-        bad = string_param_problem("frame_id", self.frame_id)
-        if bad is not None:
-            raise ConfigError(f"parameter {bad}")
+        self._read_configuration()
         tol_ns = int(round(p("pairing_tolerance_s") * 1e9))
         timeout = p("visit_timeout_s")
         self.pairing = PairingBuffer(self.corners, tolerance_ns=tol_ns, timeout_s=timeout)
@@ -163,17 +177,46 @@ class WavefrontNode(Node):
         # Worker processes, warmed up in the background.
         self.pool = CornerPool(self.corners, p("workers"))
         self._warm: dict[str, dict] = {}
-        self._warm_generation = 0
         self._start_warm_up()
+        self._create_topics(img_qos)
+        self.get_logger().info(
+            f"serving corners {', '.join(self.corners)} with {self.pool.n_workers} worker "
+            f"process(es) (affinity {self.pool.affinity}); assemble={self.assemble}; "
+            f"settings {self.settings}")
 
-        self._cb_images = MutuallyExclusiveCallbackGroup()
-        self._cb_timers = MutuallyExclusiveCallbackGroup()
-        self._cb_remote = ReentrantCallbackGroup()
-        self.pub_corner = {c: self.create_publisher(CornerWavefront, corner_topic(c), OUTPUT_QOS)
+    def _read_configuration(self) -> None:
+        """The corners, fields, estimator settings and orientations (ConfigError if bad)."""
+        p = self._param
+        corners = list(p("corners"))
+        bad = [c for c in corners if c not in CORNERS] or ([] if corners else ["(none)"])
+        if bad or len(set(corners)) != len(corners):
+            raise ConfigError(f"parameter corners must be distinct names among {CORNERS}, "
+                              f"got {corners}")
+        self.corners = tuple(c for c in CORNERS if c in corners)
+        self.fields = load_corner_fields(p("sensor_config") or None)
+        missing = [c for c in self.corners if c not in self.fields]
+        if missing:
+            raise ConfigError(f"no field points for corners {missing} in the sensor config")
+        self.settings = self._settings_from(lambda n: p(n))
+        validate_settings(self.settings)
+        # A bad selection file stops the node at start, as a bad sensor file does, rather
+        # than making every frame visit invalid (the workers read it per visit).
+        load_selection_config(p("selection_config") or None, solver=self.settings.solver)
+        self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
+                             for c in self.corners for s in SIDES}
+        self.frame_id = p("frame_id")
+        bad = string_param_problem("frame_id", self.frame_id)
+        if bad is not None:
+            raise ConfigError(f"parameter {bad}")
+
+    def _create_topics(self, img_qos) -> None:
+        # Managed publishers: nothing goes out unless the node is active.
+        self.pub_corner = {c: self.create_lifecycle_publisher(CornerWavefront, corner_topic(c),
+                                                              OUTPUT_QOS)
                            for c in self.corners}
-        self.pub_vector = (self.create_publisher(WavefrontVector, VECTOR_TOPIC, OUTPUT_QOS)
+        self.pub_vector = (self.create_lifecycle_publisher(WavefrontVector, VECTOR_TOPIC,
+                                                           OUTPUT_QOS)
                            if self.assemble else None)
-        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         self._subs = []
         self.qos_events = QosEventMonitor(self.get_logger())
         for c in self.corners:
@@ -193,14 +236,25 @@ class WavefrontNode(Node):
                         OUTPUT_QOS, callback_group=self._cb_remote))
         self._expiry_timer = self.create_timer(0.1, self._expire,
                                                callback_group=self._cb_timers)
-        self._diag_timer = self.create_timer(p("diagnostics_period_s"), self.publish_diagnostics,
-                                             callback_group=self._cb_timers)
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
-        self.get_logger().info(
-            f"serving corners {', '.join(self.corners)} with {self.pool.n_workers} worker "
-            f"process(es) (affinity {self.pool.affinity}); assemble={self.assemble}; "
-            f"settings {self.settings}")
+
+    def _release_resources(self) -> None:
+        """cleanup / shutdown: the topics, the timeout timer and the worker processes."""
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
+        if self._expiry_timer is not None:
+            self.destroy_timer(self._expiry_timer)
+            self._expiry_timer = None
+        for pub in [*self.pub_corner.values(), self.pub_vector]:
+            if pub is not None:
+                self.destroy_lifecycle_publisher(pub)
+        self.pub_corner, self.pub_vector = {}, None
+        pool, self.pool = self.pool, None
+        if pool is not None:
+            pool.shutdown(wait=False)
+
+    def _inactive_effect(self) -> str:
+        return "images are not processed (counted as rejected.inactive)"
 
     # ------------------------------------------------------------------ parameters
     def _param(self, name: str):
@@ -328,6 +382,8 @@ class WavefrontNode(Node):
     def _apply_parameters(self, params: Sequence[Parameter]) -> None:
         names = {p.name for p in params}
         with self._lock:
+            if self.pool is None:
+                return  # unconfigured: the values are read on configure
             if "pairing_tolerance_s" in names:
                 tol = int(round(self._param("pairing_tolerance_s") * 1e9))
                 self.pairing.tolerance_ns = tol
@@ -417,11 +473,21 @@ class WavefrontNode(Node):
                         "queue_dropped", f"{gap} {side} image(s) of {corner} never taken: "
                         "the queue overflowed (a burst faster than the node takes them)",
                         corner, side), warn=True)
+                if not self.is_active:
+                    self._ignore_inactive(f"{side} image of {corner}", corner, side)
+                    return
                 self._on_image(msg, corner, side)
             except Exception as exc:  # noqa: BLE001 - never let a message kill the node
                 self._reject(Rejection("internal_error", f"{corner} {side} image: "
                                        f"{type(exc).__name__}: {exc}", corner, side))
         return cb
+
+    def _ignore_inactive(self, what: str, corner: str = "", side: str = "") -> None:
+        """An input that came while the node is not active: counted, logged, not used."""
+        state = self.lifecycle_state
+        self._reject(Rejection("inactive", f"{what} not processed: the node is {state} "
+                               f"(activate: cwfs-ros lifecycle set {self.get_name()} activate)",
+                               corner, side), warn=True)
 
     def _on_image(self, msg: Image, corner: str, side: str) -> None:
         bad = stamp_problem(msg.header.stamp)
@@ -544,6 +610,9 @@ class WavefrontNode(Node):
         return max(*np.shape(intra), *np.shape(extra)) >= side
 
     def _on_future(self, f: Future) -> None:
+        if not self.is_active:  # deactivated while it ran: its managed publisher is off
+            self._ignore_inactive("an estimate finished after deactivation")
+            return
         try:
             self._publish_outcome(f.result())
         except Exception as exc:  # noqa: BLE001
@@ -609,6 +678,9 @@ class WavefrontNode(Node):
         wrongly remapped producer) would fill that corner's slot, possibly one this node
         serves itself, with a wavefront measured elsewhere: it is rejected."""
         def on_msg(msg: CornerWavefront) -> None:
+            if not self.is_active:
+                self._ignore_inactive(f"a CornerWavefront of {corner}", corner)
+                return
             try:
                 bad = stamp_problem(msg.header.stamp)
                 if bad is not None:
@@ -663,6 +735,8 @@ class WavefrontNode(Node):
         self.pub_vector.publish(wavefront_vector_msg(vec, self.frame_id))
 
     def _expire(self) -> None:
+        if not self.is_active:
+            return  # paused: what waits is timed out once active again, never dropped unsaid
         try:
             self._expire_now()
         except Exception as exc:  # noqa: BLE001 - a timer callback must not kill the node
@@ -691,7 +765,15 @@ class WavefrontNode(Node):
                 self.get_logger().warning(f"rejected ({rej.reason}): {rej.message}{more}")
 
     def diagnostics(self):
+        name = f"{self.get_name()}: wavefront estimation"
+        unconfigured = self.lifecycle_status(name, "cwfs_corner_sensors")
+        if unconfigured is not None:
+            return unconfigured
+        lifecycle = self.lifecycle_state
         with self._lock:
+            pool = self.pool
+            if pool is None:  # released while this ran
+                return self.lifecycle_status(name, "cwfs_corner_sensors")
             warm = dict(self._warm)
             stats = dict(self.stats)
             pending_images = self.pairing.pending_count()
@@ -701,11 +783,37 @@ class WavefrontNode(Node):
             incomplete = self.last_incomplete
             pending_mb = self.pairing.pending_bytes() / 1e6
         self.foreign = foreign_publishers(self, self._owned_topics())
+        level, state, message = self._health(warm, lifecycle, incomplete)
+        values = [("state", state), ("lifecycle", lifecycle),
+                  ("corners", " ".join(self.corners)),
+                  ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
+                  ("assemble", self.assemble), ("settings", str(self.settings)),
+                  *stats.items(), ("pending_images", pending_images),
+                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
+                  ("max_pending_mb", self._param("max_pending_mb")),
+                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
+        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
+        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
+        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
+                   sorted(warm.items())]
+        values += self.rejected.key_values()
+        values += self.qos_events.key_values()
+        return diagnostic_status(name, level, message, values,
+                                 hardware_id="cwfs_corner_sensors")
+
+    def _health(self, warm: dict[str, dict], lifecycle: str,
+                incomplete: tuple[float, str] | None) -> tuple[bytes, str, str]:
+        """(level, state, message) of /diagnostics: the worst condition first."""
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
             level, state = ERROR, "error"
             message = "warm-up failed: " + "; ".join(f"{w['corner']}: {w.get('error')}"
                                                       for w in failed)
+        elif lifecycle != "active":
+            level, state = WARN, "ready" if len(warm) == len(self.corners) else "warming"
+            message = f"{lifecycle}: {self._inactive_effect()}"
         elif len(warm) < len(self.corners):
             level, state = WARN, "warming"
             message = f"warming up workers ({len(warm)}/{len(self.corners)} corners ready)"
@@ -723,23 +831,7 @@ class WavefrontNode(Node):
             message = f"ready; a recent visit was published incomplete: {incomplete[1]}"
         else:
             level, state, message = OK, "ready", "ready"
-        values = [("state", state), ("corners", " ".join(self.corners)),
-                  ("workers", self.pool.n_workers), ("worker_restarts", self.pool.restarts),
-                  ("assemble", self.assemble), ("settings", str(self.settings)),
-                  *stats.items(), ("pending_images", pending_images),
-                  ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
-                  ("max_pending_mb", self._param("max_pending_mb")),
-                  ("foreign_publishers", "; ".join(self.foreign) or "none")]
-        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
-                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
-        values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
-        values += [(f"status.{c}", v) for c, v in sorted(last.items())]
-        values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
-                   sorted(warm.items())]
-        values += self.rejected.key_values()
-        values += self.qos_events.key_values()
-        return diagnostic_status(f"{self.get_name()}: wavefront estimation", level, message,
-                                 values, hardware_id="cwfs_corner_sensors")
+        return level, state, message
 
     def _owned_topics(self) -> list[str]:
         out = [corner_topic(c) for c in self.corners]
@@ -751,10 +843,6 @@ class WavefrontNode(Node):
             self.pub_diag.publish(arr)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f"diagnostics failed: {exc}")
-
-    def destroy_node(self) -> None:
-        self.pool.shutdown(wait=False)
-        super().destroy_node()
 
 
 _CORNER_RE = re.compile(r"(?<![0-9A-Za-z])R(00|04|40|44)(?![0-9])", re.IGNORECASE)
