@@ -1,4 +1,4 @@
-"""The closed active-optics loop, headless: the README's main job and the convergence benchmark.
+"""The closed active-optics loop, headless: the package's main job and the convergence benchmark.
 
 ``cwfs-ros demo`` runs the real ROS 2 graph that ``cwfs-ros bringup --sim`` runs, composed in
 this process on its own rclpy Context:

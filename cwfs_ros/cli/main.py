@@ -127,7 +127,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 # -- estimate -----------------------------------------------------------------------------
 
 SOLVER_CHOICES = ("exp", "fft", "lsq")
-SOLVER_HELP = ("TIE solver: lsq (least squares; the smallest error in every measured case), "
+SOLVER_HELP = ("TIE solver: lsq (least squares; the smallest error under photon noise), "
                "or the paper's exp (series expansion) and fft (iterative FFT), kept to "
                "reproduce its figures (default: %(default)s)")
 
@@ -174,7 +174,7 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
                    help="outer iterations (default: config/algorithm.yaml)")
     p.add_argument("--seeing", type=_finite_float, default=0.0, metavar="ARCSEC",
                    help="seeing FWHM of the images: lsq and exp take the blur's edge signal out "
-                        "(README, Accuracy, Seeing; default: none given)")
+                        "(docs/accuracy.md, Seeing; default: none given)")
     p.add_argument("--json", action="store_true",
                    help="print the result as JSON (nothing else on stdout)")
     p.add_argument("--plot", metavar="PNG", type=Path,

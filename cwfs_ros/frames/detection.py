@@ -261,7 +261,7 @@ def _binned(frame: np.ndarray, b: int) -> np.ndarray:
     reads contiguous memory and writes a frame b times smaller; the column sums then run on
     that.  (numpy's reduction over the inner axes of a 4-D reshape is ~20x slower for b = 4;
     columns first, or a float64 copy of the frame, cost 3-4x more: 14 against 4 ms on a
-    2-Mpixel float32 frame, README Frames.)
+    2-Mpixel float32 frame, docs/performance.md, Frames.)
     """
     ny, nx = (frame.shape[0] // b) * b, (frame.shape[1] // b) * b
     a = frame[:ny, :nx]

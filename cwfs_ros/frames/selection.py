@@ -293,7 +293,7 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
     the pairs after the first good one start their outer loop from its departure from
     design (``estimate_wavefront(initial_nm=...)``): the stars of one corner see nearly the
     same departure, so the loop converges in about half the iterations, to the same fixed
-    point as from zero (README, Frames).  A warm start that folds into caustic is redone
+    point as from zero (docs/accuracy.md, Frames).  A warm start that folds into caustic is redone
     from zero.
 
     Which half is intra-focal is a property of the two frames, not of a star pair: once one
@@ -548,7 +548,7 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
     if comb.n_pairs > 0 and not comb.consistent:
         # Not a correction to act on: the stars of one sensor see nearly the same departure,
         # so pairs that disagree far beyond their noise mean some are bad, and with two bad
-        # of four the outlier rejection cannot tell which (README, Frames).
+        # of four the outlier rejection cannot tell which (docs/accuracy.md, Frames).
         kept = ", ".join(str(p.index) for p in res if p.used)
         if comb.ambiguous:
             why = (f"the star pairs fall in two groups that each agree and not with each "

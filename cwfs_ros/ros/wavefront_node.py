@@ -278,8 +278,8 @@ class WavefrontNode(ManagedNode):
             int_range=(0, 256)))
         d("seeing_fwhm_arcsec", describe(
             "Atmospheric seeing of the images [arcsec FWHM], e.g. from the seeing monitor: the "
-            "lsq and exp solvers take the blur's edge signal out of the difference image (README, "
-            "Accuracy); 0 = not given: no such correction.",
+            "lsq and exp solvers take the blur's edge signal out of the difference image "
+            "(docs/accuracy.md, Seeing); 0 = not given: no such correction.",
             fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC)))
         d("pairing_tolerance_s", describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",

@@ -71,7 +71,7 @@ SPLIT = SensorSetup("split", 1.5, 160)
 
 
 def rms(e: np.ndarray) -> float:
-    """sqrt(mean of squares): the README's per-term RMS error."""
+    """sqrt(mean of squares): the per-term RMS error the accuracy figures quote."""
     return float(np.sqrt(np.mean(np.square(e))))
 
 

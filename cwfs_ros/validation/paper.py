@@ -2,7 +2,7 @@
 
 Each function returns ``(verdicts, data)``: the verdicts carry the numbers of the report,
 ``data`` what :mod:`.plots` draws.  The thresholds are fixed here, before any run, from the
-paper's text or the README's targets; a FAIL is reported as a FAIL.
+paper's text or the project's targets (docs/accuracy.md); a FAIL is reported as a FAIL.
 """
 
 from __future__ import annotations
@@ -234,7 +234,7 @@ def fig7_perturbed(opts: Options) -> tuple[list[Verdict], dict]:
                                 e_rms <= 15.0 and not r.caustic,
                                 f"RMS error {e_rms:.1f} nm over Z4-Z22 (max {e_max:.1f} at "
                                 f"Z{worst}); wavefront {wfe(truth):.0f} nm",
-                                "RMS error <= 15 nm (README target for ray-traced pairs)",
+                                "RMS error <= 15 nm (target for ray-traced pairs)",
                                 {"rms_error_nm": e_rms, "max_error_nm": e_max,
                                  "worst_noll": worst, "truth_nm": truth.tolist(),
                                  "estimate_nm": r.zernikes_nm.tolist(),
