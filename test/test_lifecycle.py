@@ -24,7 +24,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
 from cwfs_ros import cli  # noqa: E402
-from cwfs_ros.core import control as C  # noqa: E402
+from cwfs_ros.ofc import control as C  # noqa: E402
 from cwfs_ros.ros import launch as L  # noqa: E402
 from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402

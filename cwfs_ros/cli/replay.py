@@ -559,7 +559,7 @@ def _write_zernikes(path: Path, rows: list[CornerRow]) -> None:
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["visit", "stamp", "corner", "valid", "status",
-                    *[f"Z{j}" for j in range(4, 23)]])
+                    *[f"Z{j}" for j in layout.NOLL]])
         for r in rows:
             w.writerow([r.visit, _stamp(r.stamp_ns), r.corner, int(r.valid), r.status,
                         *[_num(v) if r.valid else "" for v in r.zernikes_nm]])
@@ -631,7 +631,7 @@ def _visit_colours(n: int) -> list[Any]:
 
 def _plot_zernikes(path: Path, rows: list[CornerRow]) -> Path:
     """Z4..Z22 per corner (2x2 panels), one line per visit; invalid estimates left out."""
-    noll = list(range(4, 23))
+    noll = list(layout.NOLL)
     visits = sorted({r.visit for r in rows})
     colours = dict(zip(visits, _visit_colours(len(visits)), strict=True))
     fig = _figure((12.0, 8.0))
