@@ -30,9 +30,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from cwfs_ros.config import config_dir
+from cwfs_ros.config import load_sensor_geometry, load_yaml, sensor_file
 from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import SIDES as _SIDES
 from cwfs_ros.wfs.instrument import Instrument, load_instrument
@@ -94,11 +93,11 @@ def load_half_chips(path: str | Path | None = None) -> dict[str, dict[str, HalfC
     Raises:
         ConfigError naming the missing or bad key.
     """
-    p = Path(path) if path is not None else config_dir() / "sensors" / "lsst_corners.yaml"
+    p = sensor_file(path)
     try:
         mtime = p.stat().st_mtime_ns
     except OSError as exc:
-        raise ConfigError(f"cannot read sensor file {p}: {exc}") from exc
+        raise ConfigError(f"cannot read sensor file {p}: {exc.strerror or exc}") from exc
     # Parsing the YAML costs ~12 ms, a tenth of a corner's budget: every visit's corner job
     # reads it, so the parsed file is kept per (path, modification time).  The caller gets
     # its own outer dicts; HalfChip is frozen.
@@ -109,34 +108,27 @@ def load_half_chips(path: str | Path | None = None) -> dict[str, dict[str, HalfC
 @lru_cache(maxsize=8)
 def _parse_half_chips(path: str, mtime_ns: int) -> dict[str, dict[str, HalfChip]]:
     p = Path(path)
+    geometry = load_sensor_geometry(p)  # the corners' field points and offsets
+    cfg = load_yaml(p, "sensor file", copy_=False)  # the frames' geometry
     try:
-        cfg = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"cannot read sensor file {p}: {exc}") from exc
-    try:
-        offsets = cfg.get("detector_offset_mm", {"extra": 1.5, "intra": -1.5})
         default_frame = cfg.get("frame", {}) or {}
         per_frame = cfg.get("frames", {}) or {}
         out: dict[str, dict[str, HalfChip]] = {}
-        for corner, c in cfg["corners"].items():
-            fi = _pair(c["intra"]["field_deg"], f"{corner}.intra.field_deg")
-            fe = _pair(c["extra"]["field_deg"], f"{corner}.extra.field_deg")
-            mid = (_pair(c["mid_deg"], f"{corner}.mid_deg") if "mid_deg" in c
-                   else (0.5 * (fi[0] + fe[0]), 0.5 * (fi[1] + fe[1])))
+        for corner, g in geometry.items():
             halves = {}
             for side in _SIDES:
-                h = c[side]
                 fr = {**default_frame, **((per_frame.get(corner) or {}).get(side) or {})}
                 rows, cols = int(fr.get("rows", 4000)), int(fr.get("cols", 2000))
                 ref = fr.get("reference_px")
                 ref_px = None if ref is None else _pair(ref, f"{corner}.{side}.reference_px")
                 orient = Orientation(int(fr.get("rot90", 0)), str(fr.get("flip", "none")))
                 halves[side] = HalfChip(
-                    corner=str(corner), side=side, sensor=str(h.get("sensor", "")),
-                    field_deg=fi if side == "intra" else fe,
-                    detector_offset_mm=float(offsets[side]), shape_px=(rows, cols),
-                    orientation=orient, reference_px=ref_px,
-                    mid_deg=mid)
+                    corner=corner, side=side,
+                    sensor=g.intra_sensor if side == "intra" else g.extra_sensor,
+                    field_deg=g.field_deg(side),
+                    detector_offset_mm=g.intra_offset_mm if side == "intra" else g.extra_offset_mm,
+                    shape_px=(rows, cols), orientation=orient, reference_px=ref_px,
+                    mid_deg=g.mid_field_deg)
             out[str(corner)] = halves
     except (KeyError, TypeError, AttributeError, ValueError) as exc:
         raise ConfigError(f"sensor file {p}: bad or missing key ({exc})") from exc

@@ -88,9 +88,8 @@ from typing import Any
 
 import galsim
 import numpy as np
-import yaml
 
-from cwfs_ros.config import config_dir
+from cwfs_ros.config import config_dir, load_sensor_geometry, load_yaml, sensor_file
 from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import (
     CLOCK_RESET_S,
@@ -161,17 +160,12 @@ def _dir(cfg_dir: str | Path | None) -> Path:
     return ofc_config_dir() if cfg_dir is None else Path(cfg_dir)
 
 
-@lru_cache(maxsize=32)
 def _load_yaml(path: str) -> object:
-    """Parse a YAML file (cached by path; the C loader when available: the 1 MB matrix)."""
-    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-    try:
-        with open(path, encoding="utf-8") as f:
-            return yaml.load(f, Loader=loader)  # noqa: S506 (safe loader)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"OFC data file not found: {path}") from exc
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f"cannot read OFC data file {path}: {exc}") from exc
+    """An OFC data file, parsed (:func:`cwfs_ros.config.load_yaml`: cached, ConfigError).
+
+    The callers only read it (into new arrays or dataclasses), so the cached parse is shared.
+    """
+    return load_yaml(path, "OFC data file", copy_=False)
 
 
 def _yaml_array(path: Path, shape_ndim: int) -> np.ndarray:
@@ -260,23 +254,12 @@ def corner_mid_field_points_deg(
     -------
     (n, 2) array of ``(field_x, field_y)`` in degrees, in the order of ``corners``.
     """
-    path = Path(sensors_yaml) if sensors_yaml is not None else (
-        config_dir() / "sensors" / "lsst_corners.yaml")
-    raw = _load_yaml(str(path))
-    out = []
-    try:
-        table = raw["corners"]
-        for c in corners:
-            entry = table[c]
-            if "mid_deg" in entry:
-                out.append([float(v) for v in entry["mid_deg"]])
-            else:
-                a = np.asarray(entry["intra"]["field_deg"], dtype=np.float64)
-                b = np.asarray(entry["extra"]["field_deg"], dtype=np.float64)
-                out.append(list(0.5 * (a + b)))
-    except (KeyError, TypeError) as exc:
-        raise ConfigError(f"{path}: no field points for corner {exc}") from exc
-    return _as_fields(np.array(out, dtype=np.float64))
+    geometry = load_sensor_geometry(sensors_yaml)
+    missing = [c for c in corners if c not in geometry]
+    if missing:
+        raise ConfigError(f"{sensor_file(sensors_yaml)}: no field points for corner "
+                          f"{', '.join(missing)}")
+    return _as_fields(np.array([geometry[c].mid_field_deg for c in corners], dtype=np.float64))
 
 
 def convert_dof_convention(values: np.ndarray | Sequence[float], from_convention: str,

@@ -17,9 +17,8 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-import yaml
 
-from cwfs_ros.config import config_dir
+from cwfs_ros.config import config_dir, load_yaml
 from cwfs_ros.errors import ConfigError
 
 __all__ = ["FIELD_RADIUS_DEG", "field_rms_nm", "gq_field_points_deg", "gq_weights"]
@@ -36,12 +35,11 @@ _RADIUS_TOL_DEG = 1e-3
 def gq_field_points_deg() -> np.ndarray:
     """(31, 2) field points ``(x, y)`` in degrees, in the file's order (read-only)."""
     path = config_dir() / _GQ_FILE
+    raw = load_yaml(path, "Gaussian-quadrature field points", copy_=False)
     try:
-        with open(path, encoding="utf-8") as f:
-            raw = yaml.safe_load(f)
         pts = np.array([raw[k] for k in sorted(k for k in raw if isinstance(k, int))],
                        dtype=np.float64)
-    except (OSError, yaml.YAMLError, TypeError, ValueError) as exc:
+    except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: cannot read the Gaussian-quadrature points ({exc})") from exc
     if pts.shape != (1 + _N_RINGS * _N_AZIMUTHS, 2) or not np.all(np.isfinite(pts)):
         raise ConfigError(f"{path}: expected 31 finite (x, y) points, got {pts.shape}")

@@ -619,23 +619,7 @@ def load_corner_fields(path: str | None = None) -> dict[str, dict[str, tuple[flo
     Read from ``config/sensors/lsst_corners.yaml`` (or ``path``); degrees, batoid field frame.
     The image centre of each half-sensor stamp is taken to be at that field point.
     """
-    from pathlib import Path
+    from cwfs_ros.config import load_sensor_geometry
 
-    import yaml
-
-    from cwfs_ros.config import config_dir
-    from cwfs_ros.errors import ConfigError
-
-    p = Path(path) if path else config_dir() / "sensors" / "lsst_corners.yaml"
-    try:
-        with open(p, encoding="utf-8") as f:
-            raw = yaml.safe_load(f)
-        out = {}
-        for name, c in raw["corners"].items():
-            out[str(name)] = {}
-            for side in SIDES:
-                x, y = (float(v) for v in c[side]["field_deg"])
-                out[str(name)][side] = (x, y)
-        return out
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"cannot read the corner field points from {p}: {exc}") from exc
+    return {name: {side: g.field_deg(side) for side in SIDES}
+            for name, g in load_sensor_geometry(path).items()}

@@ -31,15 +31,13 @@ moderately loaded. Batoid's trace is single-threaded here.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import batoid
 import numpy as np
-import yaml
 
-from cwfs_ros.sim._paths import config_dir
+from cwfs_ros.config import CornerGeometry, load_sensor_geometry
 from cwfs_ros.sim.sampling import annulus_samples
 from cwfs_ros.sim.telescope import defocused
 from cwfs_ros.wfs.blur import FWHM_PER_SIGMA
@@ -448,25 +446,8 @@ def camera_zernikes_nm(
 # --------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CornerSensor:
-    """One LSST corner wavefront sensor (a split chip: extra-focal half + intra-focal half).
-
-    Attributes
-    ----------
-    name : raft name (``R00``, ``R04``, ``R40``, ``R44``).
-    extra_field_deg, intra_field_deg : field points (theta_x, theta_y) in degrees of the
-        extra-focal (SW0) and intra-focal (SW1) halves.
-    mid_field_deg : midpoint of the two, in degrees.
-    extra_offset_mm, intra_offset_mm : detector offsets in mm (+1.5 and -1.5).
-    """
-
-    name: str
-    extra_field_deg: tuple[float, float]
-    intra_field_deg: tuple[float, float]
-    mid_field_deg: tuple[float, float]
-    extra_offset_mm: float
-    intra_offset_mm: float
+# The corner-sensor geometry is read in one place (cwfs_ros.config); the simulator's name for it.
+CornerSensor = CornerGeometry
 
 
 def _pair(v: object) -> tuple[float, float]:
@@ -477,38 +458,15 @@ def _pair(v: object) -> tuple[float, float]:
 
 
 def load_corner_geometry(path: str | Path | None = None) -> dict[str, CornerSensor]:
-    """Read the corner-sensor geometry YAML (default ``config/sensors/lsst_corners.yaml``).
+    """The corner-sensor geometry (default ``config/sensors/lsst_corners.yaml``).
 
     Returns
     -------
     dict
-        Raft name -> :class:`CornerSensor`, in the file's order.
+        Raft name -> :class:`CornerSensor`, in the file's order
+        (:func:`cwfs_ros.config.load_sensor_geometry`).
     """
-    p = Path(path) if path is not None else config_dir() / "sensors" / "lsst_corners.yaml"
-    with open(p, encoding="utf-8") as f:
-        cfg = yaml.safe_load(f)
-    offsets: Mapping[str, float] = cfg.get("detector_offset_mm", {"extra": 1.5, "intra": -1.5})
-    out: dict[str, CornerSensor] = {}
-    for name, c in cfg["corners"].items():
-        extra = _pair(c["extra"]["field_deg"])
-        intra = _pair(c["intra"]["field_deg"])
-        mid = (
-            _pair(c["mid_deg"])
-            if "mid_deg" in c
-            else (
-                0.5 * (extra[0] + intra[0]),
-                0.5 * (extra[1] + intra[1]),
-            )
-        )
-        out[str(name)] = CornerSensor(
-            name=str(name),
-            extra_field_deg=extra,
-            intra_field_deg=intra,
-            mid_field_deg=mid,
-            extra_offset_mm=float(offsets["extra"]),
-            intra_offset_mm=float(offsets["intra"]),
-        )
-    return out
+    return load_sensor_geometry(path)
 
 
 def corner_fields(path: str | Path | None = None) -> dict[str, dict[str, tuple[float, float]]]:

@@ -60,9 +60,9 @@ from functools import lru_cache
 
 import batoid
 import numpy as np
-import yaml
 from astropy.io import fits
 
+from cwfs_ros.config import load_yaml
 from cwfs_ros.layout import DOF_NAMES, DOF_UNITS, N_DOF
 from cwfs_ros.sim._paths import sim_data_dir
 
@@ -124,8 +124,7 @@ def _bending_data() -> dict[str, tuple[np.ndarray, float]]:
         j = 0..28, index 0 unused. ``R_outer`` is the Zernike outer radius in metres.
     """
     bend_dir = sim_data_dir() / "bending"
-    with open(bend_dir / "bend.yaml", encoding="utf-8") as f:
-        cfg = yaml.safe_load(f)
+    cfg = load_yaml(bend_dir / "bend.yaml", "bending-mode table", copy_=False)
     out: dict[str, tuple[np.ndarray, float]] = {}
     for surface, modes in _SURFACE_MODES.items():
         zk_cfg = cfg[surface]["zk"]
