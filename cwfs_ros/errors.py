@@ -15,11 +15,13 @@ Each names the problem in its message, on one line where a user reads it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 __all__ = [
     "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
     "DonutCutError", "ShapeMismatchError", "StampTooSmallError", "SaturatedImageError",
     "SwappedImagesError", "ParamsFileError", "BagError", "LaunchError", "ToolError",
-    "LoopError", "CliError",
+    "LoopError", "CliError", "Problem",
 ]
 
 
@@ -96,3 +98,22 @@ class LoopError(CwfsError, RuntimeError):
 
 class CliError(CwfsError):
     """A user-facing error of a sub-command: reported on stderr, exit status 2."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Why something was not used: a ``reason`` tag (counted, compared) and a ``message``.
+
+    Results carry the tag as data, so that no caller parses it back out of text; ``status``
+    is the one-line text for logs and messages, ``"<reason>: <message>"``.
+    """
+
+    reason: str
+    message: str
+
+    @property
+    def status(self) -> str:
+        return f"{self.reason}: {self.message}" if self.message else self.reason
+
+    def __str__(self) -> str:
+        return self.status

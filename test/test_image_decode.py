@@ -164,6 +164,7 @@ def test_bad_image_msg_gives_a_record_with_the_reason():
     m.data = b"\0" * 1000  # truncated
     rec = image_record_from_msg(m, "R00", "intra", 0.0)
     assert rec.image is None and rec.error.startswith("truncated_data:")
+    assert rec.reason == "truncated_data"
     m = Image(height=2, width=2, encoding="bgr8", step=6, data=b"\0" * 12)
     rec = image_record_from_msg(m, "R00", "intra", 0.0)
-    assert rec.error.startswith("unsupported_encoding:")
+    assert rec.error.startswith("unsupported_encoding:") and rec.reason == "unsupported_encoding"

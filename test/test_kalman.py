@@ -114,7 +114,8 @@ def test_unobservable_directions_are_dropped_and_reported():
     blind[C.load_dof_spec().index("M1M3_B20")] = True
     ctl2 = KalmanOFC(OpticalModel("bundled"), dof_mask=blind)
     res2 = ctl2.step(y, uncertainty_nm=np.full(layout.N_MEAS, 15.0), stamp_ns=1)
-    assert not res2.valid and res2.status.startswith("unobservable") and "M1M3_B20" in res2.status
+    assert not res2.valid and res2.reason == "unobservable"
+    assert res2.status.startswith("unobservable") and "M1M3_B20" in res2.status
     assert not np.any(res2.dof)
 
 
@@ -168,7 +169,8 @@ def test_state_persists_and_an_applied_visit_is_refused_after_restart(tmp_path):
     np.testing.assert_array_equal(fresh.dof_total, ctl.dof_total)
     np.testing.assert_array_equal(fresh.P, ctl.P)
     again = fresh.step(at.intrinsic_nm, stamp_ns=1002)
-    assert not again.valid and again.status.startswith("stale_visit")
+    assert not again.valid and again.reason == "stale_visit"
+    assert again.status.startswith("stale_visit")
     nxt_a = ctl.step(at.intrinsic_nm + at.H @ x, stamp_ns=2000)
     nxt_b = fresh.step(at.intrinsic_nm + at.H @ x, stamp_ns=2000)
     np.testing.assert_allclose(nxt_b.dof, nxt_a.dof)
@@ -272,7 +274,8 @@ def test_data_no_telescope_could_give_is_refused_not_solved():
              (tight, z0 + noise, np.full(layout.N_MEAS, 1e-20))]
     for k, (c, y, u) in enumerate(cases):
         res = c.step(y, uncertainty_nm=u, stamp_ns=k + 1)
-        assert not res.valid and res.status.startswith("inconsistent_measurement"), res.status
+        assert not res.valid and res.reason == "inconsistent_measurement"
+        assert res.status.startswith("inconsistent_measurement"), res.status
         assert not np.any(res.dof) and c.n_steps == 0 and not np.any(c.dof_total)
     # a large but real state within the strokes is not refused
     x = np.zeros(layout.N_DOF)
@@ -288,7 +291,8 @@ def test_uncertainties_that_are_not_one_sigmas_are_refused():
         u = np.full(layout.N_MEAS, 15.0)
         u[20] = bad
         res = ctl.step(z0, uncertainty_nm=u, stamp_ns=1)
-        assert not res.valid and res.status.startswith("bad_uncertainty") and "R04" in res.status
+        assert not res.valid and res.reason == "bad_uncertainty"
+        assert res.status.startswith("bad_uncertainty") and "R04" in res.status
 
 
 def test_rotator_slews_future_and_contradictory_samples():

@@ -29,7 +29,7 @@ def _reason(a: np.ndarray, encoding: str, big: bool = False,
     if declared_big is not None:
         m.is_bigendian = int(declared_big)
     rec = image_record_from_msg(m, "R00", "intra", 0.0)
-    return "" if rec.error is None else rec.error.split(":", 1)[0]
+    return rec.reason
 
 
 def _counts(scale: float, bias: float, seed: int = 0) -> np.ndarray:

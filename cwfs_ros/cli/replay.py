@@ -274,8 +274,7 @@ class _Pipeline:
         c = pair.corner
         fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
         if pair.error is not None:
-            tag = (pair.intra.error or pair.extra.error or "bad_image").split(":", 1)[0]
-            out = invalid_outcome(c, pair.stamp_ns, tag, pair.error, fi, fe,
+            out = invalid_outcome(c, pair.stamp_ns, pair.reason, pair.error, fi, fe,
                                   self.settings.solver)
         else:
             out = run_corner_job(CornerJob(c, pair.stamp_ns, pair.intra.image,

@@ -90,7 +90,7 @@ import galsim
 import numpy as np
 
 from cwfs_ros.config import config_dir, load_sensor_geometry, load_yaml, sensor_file
-from cwfs_ros.errors import ConfigError
+from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.layout import (
     CLOCK_RESET_S,
     CORNER_SENSORS,
@@ -471,10 +471,6 @@ class SensitivityMatrix:
             raise ConfigError(f"field mask must have {self.n_fields} entries, got {v.size}")
         return np.repeat(v, N_ZK)
 
-    def predict_nm(self, dof: np.ndarray | Sequence[float]) -> np.ndarray:
-        """Wavefront change (nm, (19 * n_fields,)) produced by a DoF change (DoF units)."""
-        return self.matrix_nm @ np.asarray(dof, dtype=np.float64)
-
     @classmethod
     def from_ts_ofc(
         cls,
@@ -654,10 +650,9 @@ class CheckedVisit:
 
 
 @dataclass(frozen=True)
-class Refusal:
-    """Why a visit is refused: ``"<tag>: <explanation>"`` and the corner flags seen."""
+class Refusal(Problem):
+    """Why a visit is refused (:class:`~cwfs_ros.errors.Problem`) and the corner flags seen."""
 
-    status: str
     corners: tuple[bool, ...] = ()
 
 
@@ -668,7 +663,8 @@ class Estimate:
     Attributes
     ----------
     dof_error : (50,) estimated DoF state error, DoF units (zeros when not valid).
-    valid, status : ``status`` is ``"ok"`` or ``"<tag>: <explanation>"``; tags are
+    valid, status, reason : ``reason`` is ``"ok"`` or the refusal's tag, ``status`` the text
+        for people, ``"ok"`` or ``"<tag>: <explanation>"``; tags are
         ``bad_shape``, ``non_finite``, ``corner_invalid``, ``no_valid_corners``,
         ``implausible_wavefront``, ``ill_conditioned``; :meth:`OFCSolver.step` adds
         ``no_stamp``, ``stale_visit``, ``future_stamp`` and ``non_finite_result``.
@@ -691,6 +687,7 @@ class Estimate:
     n_modes_used: int
     condition: float
     corners_used: tuple[bool, ...]
+    reason: str = "ok"
 
 
 @dataclass(frozen=True)
@@ -718,6 +715,8 @@ class OFCResult:
         NaN from the PI controller.
     rotator_angle_deg : camera rotator angle the visit was solved at.
     dropped, n_dropped : the state directions too weakly observed to be corrected.
+    reason : ``"ok"`` or the refusal's tag (:class:`Estimate`), as data: never parsed from
+        ``status``.
     """
 
     dof: np.ndarray
@@ -738,6 +737,7 @@ class OFCResult:
     rotator_angle_deg: float = 0.0
     dropped: str = ""
     n_dropped: int = 0
+    reason: str = "ok"
 
 
 def _rms(r: np.ndarray, n_corners: int) -> float:
@@ -930,15 +930,15 @@ class OFCSolver:
         n_rows = nf * N_ZK
         intrinsic = self.intrinsic_nm if intrinsic_nm is None else intrinsic_nm
 
-        def refuse(status: str, corners: tuple[bool, ...] = ()) -> Refusal:
-            return Refusal(status, corners)
+        def refuse(reason: str, message: str, corners: tuple[bool, ...] = ()) -> Refusal:
+            return Refusal(reason, message, corners)
 
         try:
             y = np.asarray(measured_nm, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            return refuse(f"bad_shape: measured_nm is not a numeric array ({exc})")
+            return refuse("bad_shape", f"measured_nm is not a numeric array ({exc})")
         if y.size != n_rows or y.ndim not in (1, 2) or (y.ndim == 2 and y.shape != (nf, N_ZK)):
-            return refuse(f"bad_shape: expected {n_rows} values ({nf} corners x {N_ZK} "
+            return refuse("bad_shape", f"expected {n_rows} values ({nf} corners x {N_ZK} "
                           f"Zernikes Z4..Z22), got shape {y.shape}")
         y = y.reshape(-1)
         if corner_valid is None:
@@ -946,28 +946,28 @@ class OFCSolver:
         else:
             cv_raw = np.asarray(corner_valid)
             if cv_raw.size != nf:
-                return refuse(f"bad_shape: corner_valid must have {nf} entries, "
+                return refuse("bad_shape", f"corner_valid must have {nf} entries, "
                               f"got shape {cv_raw.shape}")
             cv = cv_raw.reshape(-1).astype(bool)
         corners = tuple(bool(c) for c in cv)
         names = self._corner_names()
         if not cv.all() and not self.allow_partial:
             bad = ", ".join(n for n, ok in zip(names, cv, strict=True) if not ok)
-            return refuse(f"corner_invalid: {bad} flagged invalid and allow_partial is False",
+            return refuse("corner_invalid", f"{bad} flagged invalid and allow_partial is False",
                           corners=corners)
         if not cv.any():
-            return refuse("no_valid_corners: every corner is flagged invalid", corners)
+            return refuse("no_valid_corners", "every corner is flagged invalid", corners)
         rows = self.sensitivity.rows_for(cv)
         bad_rows = rows & ~np.isfinite(y)
         if bad_rows.any():
             bad_c = sorted({names[i // N_ZK] for i in np.flatnonzero(bad_rows)})
-            return refuse(f"non_finite: NaN/inf in the wavefront of {', '.join(bad_c)} "
+            return refuse("non_finite", f"NaN/inf in the wavefront of {', '.join(bad_c)} "
                           f"({int(bad_rows.sum())} values)", corners)
         if self.max_abs_zernike_nm is not None:
             big = rows & (np.abs(y) > self.max_abs_zernike_nm)
             if big.any():
                 big_c = sorted({names[i // N_ZK] for i in np.flatnonzero(big)})
-                return refuse(f"implausible_wavefront: |Z| up to {np.abs(y[big]).max():.4g} nm "
+                return refuse("implausible_wavefront", f"|Z| up to {np.abs(y[big]).max():.4g} nm "
                               f"in {', '.join(big_c)}, beyond max_abs_zernike_nm "
                               f"{self.max_abs_zernike_nm:g}", corners)
         # A measured total wavefront holds the design's (tens to hundreds of nm at the
@@ -977,7 +977,7 @@ class OFCSolver:
                  if cv[k] and not np.any(y[k * N_ZK:(k + 1) * N_ZK])
                  and np.any(intrinsic[k * N_ZK:(k + 1) * N_ZK])]
         if blank:
-            return refuse(f"implausible_wavefront: {', '.join(blank)} flagged valid but all "
+            return refuse("implausible_wavefront", f"{', '.join(blank)} flagged valid but all "
                           f"{N_ZK} terms are exactly 0 (an unfilled corner: a measurement "
                           "holds the design wavefront)", corners)
         return CheckedVisit(y, cv, rows)
@@ -999,13 +999,13 @@ class OFCSolver:
         checked = self.check_visit(measured_nm, corner_valid)
         if isinstance(checked, Refusal):
             return Estimate(np.zeros(N_DOF), False, checked.status, nan_vec, float("nan"),
-                            float("nan"), 0, float("nan"), checked.corners)
+                            float("nan"), 0, float("nan"), checked.corners, checked.reason)
         y, cv, rows = checked.y, checked.corner_valid, checked.rows
         corners = tuple(bool(c) for c in cv)
 
-        def refuse(status: str, r: np.ndarray, rms: float) -> Estimate:
-            return Estimate(np.zeros(N_DOF), False, status, r, rms, float("nan"), 0,
-                            float("nan"), corners)
+        def refuse(problem: Problem, r: np.ndarray, rms: float) -> Estimate:
+            return Estimate(np.zeros(N_DOF), False, problem.status, r, rms, float("nan"), 0,
+                            float("nan"), corners, problem.reason)
 
         r_full = np.where(rows, y - self.intrinsic_nm, np.nan)
         r = r_full[rows]
@@ -1013,9 +1013,10 @@ class OFCSolver:
         rms = _rms(r, n_used)
         inv = self._inverse(rows)
         if inv.n_modes == 0 or not inv.condition <= self.max_condition:
-            return refuse(f"ill_conditioned: effective condition number {inv.condition:.3g} "
-                          f"> max_condition {self.max_condition:.3g} "
-                          f"({self.method}, {n_used} corners)", r_full, rms)
+            return refuse(Problem("ill_conditioned", f"effective condition number "
+                                  f"{inv.condition:.3g} > max_condition "
+                                  f"{self.max_condition:.3g} ({self.method}, {n_used} corners)"),
+                          r_full, rms)
         # Overflow (values near the float64 maximum, with no plausibility limit set) gives
         # NaN/inf here, which step() refuses as non_finite_result: no warning needed.
         with np.errstate(over="ignore", invalid="ignore"):
@@ -1032,12 +1033,12 @@ class OFCSolver:
         return [f"field{i}" for i in range(self.n_fields)]
 
     # ---------------------------------------------------------------- control step
-    def _stamp_problem(self, stamp_ns: int | None, now_ns: int | None) -> str | None:
+    def _stamp_problem(self, stamp_ns: int | None, now_ns: int | None) -> Problem | None:
         """Why a visit of this stamp must not be applied, or None."""
         if stamp_ns is None:
             return None
         if stamp_ns <= 0:
-            return "no_stamp: the visit's header.stamp is unset (0)"
+            return Problem("no_stamp", "the visit's header.stamp is unset (0)")
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
             what = "again" if stamp_ns == self.last_stamp_ns else "older than the last one"
             hint = ""
@@ -1047,12 +1048,13 @@ class OFCSolver:
                 # backwards, an old bag played into the graph say, without an operator.
                 hint = (f"; {(self.last_stamp_ns - stamp_ns) / 1e9:.0f} s back: if the "
                         "camera's clock was reset, reset the controller (ofc_node ~/reset)")
-            return (f"stale_visit: visit {stamp_ns} ns is {what} applied "
-                    f"({self.last_stamp_ns} ns): not applied twice or out of order{hint}")
+            return Problem("stale_visit", f"visit {stamp_ns} ns is {what} applied "
+                           f"({self.last_stamp_ns} ns): not applied twice or out of order{hint}")
         if self.max_future_s is not None and now_ns is not None and now_ns > 0 and \
                 stamp_ns > now_ns + self.max_future_s * 1e9:
-            return (f"future_stamp: visit {stamp_ns} ns is {(stamp_ns - now_ns) / 1e9:.4g} s "
-                    f"ahead of the clock (max_future_s {self.max_future_s:g})")
+            return Problem("future_stamp", f"visit {stamp_ns} ns is "
+                           f"{(stamp_ns - now_ns) / 1e9:.4g} s ahead of the clock "
+                           f"(max_future_s {self.max_future_s:g})")
         return None
 
     def step(
@@ -1087,13 +1089,14 @@ class OFCSolver:
         t0 = time.perf_counter()
         problem = self._stamp_problem(stamp_ns, now_ns)
         est = (self.estimate(measured_nm, corner_valid) if problem is None else
-               Estimate(np.zeros(N_DOF), False, problem, np.full(self.n_fields * N_ZK, np.nan),
-                        float("nan"), float("nan"), 0, float("nan"), ()))
+               Estimate(np.zeros(N_DOF), False, problem.status,
+                        np.full(self.n_fields * N_ZK, np.nan), float("nan"), float("nan"), 0,
+                        float("nan"), (), problem.reason))
         if not est.valid:
             return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False, est.status,
                              est.wavefront_rms_nm, float("nan"), est.n_modes_used,
                              est.dof_error, np.zeros(N_DOF, dtype=bool), est.condition,
-                             est.corners_used, time.perf_counter() - t0)
+                             est.corners_used, time.perf_counter() - t0, reason=est.reason)
         e = est.dof_error
         # Without integral action (ki = 0) nothing accumulates: an integral summed unused
         # would kick the loop by ki * sum(e) the moment ki is turned on.
@@ -1130,7 +1133,7 @@ class OFCSolver:
                              "non_finite_result: the solve gave NaN/inf DoFs; state unchanged",
                              est.wavefront_rms_nm, float("nan"), est.n_modes_used, e,
                              np.zeros(N_DOF, dtype=bool), est.condition, est.corners_used,
-                             time.perf_counter() - t0)
+                             time.perf_counter() - t0, reason="non_finite_result")
         if not dry_run:
             self.integral = integral
             self.dof_total = total

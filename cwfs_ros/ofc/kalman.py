@@ -43,7 +43,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from cwfs_ros import layout
-from cwfs_ros.errors import ConfigError
+from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.estimation import Observability, measurement_covariance, observability
 from cwfs_ros.ofc.model import ModelAtAngle, OpticalModel
@@ -114,19 +114,20 @@ class _Update:
 
 
 def _uncertainty_problem(uncertainty_nm: np.ndarray | Sequence[float] | None,
-                         rows: np.ndarray) -> str | None:
+                         rows: np.ndarray) -> Problem | None:
     """A reported uncertainty of a used corner that is not a 1-sigma: NaN, inf or negative
     (0 means "not reported" and takes the default)."""
     if uncertainty_nm is None:
         return None
     u = np.asarray(uncertainty_nm, dtype=np.float64).reshape(-1)
     if u.size != rows.size:
-        return f"bad_uncertainty: {u.size} uncertainties for {rows.size} Zernike terms"
+        return Problem("bad_uncertainty",
+                       f"{u.size} uncertainties for {rows.size} Zernike terms")
     bad = rows & ~(np.isfinite(u) & (u >= 0))
     if bad.any():
         names = sorted({layout.CORNERS[i // layout.N_ZK] for i in np.flatnonzero(bad)})
-        return (f"bad_uncertainty: uncertainty_nm of {', '.join(names)} holds NaN, inf or "
-                f"negative values ({int(bad.sum())} terms); 0 means not reported")
+        return Problem("bad_uncertainty", f"uncertainty_nm of {', '.join(names)} holds NaN, "
+                       f"inf or negative values ({int(bad.sum())} terms); 0 means not reported")
     return None
 
 
@@ -252,14 +253,14 @@ class KalmanOFC(C.OFCSolver):
         t0 = time.perf_counter()
         problem = self._stamp_problem(stamp_ns, now_ns)
         if problem is None and not np.isfinite(rotator_angle_deg):
-            problem = f"bad_rotator_angle: {rotator_angle_deg!r}"
+            problem = Problem("bad_rotator_angle", f"{rotator_angle_deg!r}")
         if problem is not None:
             return self._refused(problem, (), t0, rotator_angle_deg)
         # The input checks first, against the unrotated design (only its non-zero corners
         # matter there): refused input never builds a rotator bin's model.
         checked = self.check_visit(measured_nm, corner_valid)
         if isinstance(checked, C.Refusal):
-            return self._refused(checked.status, checked.corners, t0, rotator_angle_deg)
+            return self._refused(checked, checked.corners, t0, rotator_angle_deg)
         corners = tuple(bool(c) for c in checked.corner_valid)
         bad_unc = _uncertainty_problem(uncertainty_nm, checked.rows)
         if bad_unc is not None:
@@ -274,8 +275,8 @@ class KalmanOFC(C.OFCSolver):
             problem = self._inconsistency(at, r, rows, cov)
             upd = None if problem else self._update(at, r, rows, cov)
         except np.linalg.LinAlgError as exc:
-            problem = (f"ill_conditioned: the measurement covariance cannot be factorised "
-                       f"({exc}); check the corners' uncertainty_nm")
+            problem = Problem("ill_conditioned", f"the measurement covariance cannot be "
+                              f"factorised ({exc}); check the corners' uncertainty_nm")
         if problem is not None:
             return self._refused(problem, corners, t0, rotator_angle_deg)
         if upd.obs.n_kept == 0:
@@ -283,12 +284,13 @@ class KalmanOFC(C.OFCSolver):
                                  rotator_angle_deg)
         u_m = self._correction(at, upd.x)
         if not self._finite_outcome(upd, u_m):
-            return self._refused("non_finite_result: the filter gave NaN/inf or a state beyond "
-                                 "any stroke; state unchanged", corners, t0, rotator_angle_deg)
+            return self._refused(Problem("non_finite_result", "the filter gave NaN/inf or a "
+                                         "state beyond any stroke; state unchanged"),
+                                 corners, t0, rotator_angle_deg)
         return self._finish(at, r, rows, upd, u_m, corners, stamp_ns, dry_run, t0)
 
     def _inconsistency(self, at: ModelAtAngle, r: np.ndarray, rows: np.ndarray,
-                       cov: np.ndarray) -> str | None:
+                       cov: np.ndarray) -> Problem | None:
         """Why no telescope state within the strokes explains this measurement, or None.
 
         A chi-square test of ``r`` against every state the DoF strokes allow (covariance
@@ -302,10 +304,10 @@ class KalmanOFC(C.OFCSolver):
         with np.errstate(over="ignore", invalid="ignore"):
             nis = float(r @ np.linalg.solve(S, r)) / r.size
         if not np.isfinite(nis) or nis > self.settings.max_inconsistency:
-            return (f"inconsistent_measurement: no telescope state within the DoF strokes "
-                    f"explains this wavefront (chi2 per term {nis:.3g} > max_inconsistency "
-                    f"{self.settings.max_inconsistency:g}); a corner is wrong or its "
-                    "uncertainty too small")
+            return Problem("inconsistent_measurement", f"no telescope state within the DoF "
+                           f"strokes explains this wavefront (chi2 per term {nis:.3g} > "
+                           f"max_inconsistency {self.settings.max_inconsistency:g}); a corner "
+                           "is wrong or its uncertainty too small")
         return None
 
     def _finite_outcome(self, upd: _Update, u_m: np.ndarray) -> bool:
@@ -382,22 +384,23 @@ class KalmanOFC(C.OFCSolver):
         dirs = obs.dropped_dirs * self.prior_sigma[self.dof_mask][None, :]
         return np.array([self._field_rms(F, weights, d) for d in dirs])
 
-    def _unobservable_message(self, obs: Observability) -> str:
+    def _unobservable_message(self, obs: Observability) -> Problem:
         names = [self.spec.names[i] for i in np.flatnonzero(self.dof_mask)]
-        return (f"unobservable: the valid corners see no combination of the DoF in dof_mask "
-                f"above min_snr {self.settings.min_snr:g} (best {obs.snr[0]:.2g}); drop "
-                f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''} from dof_mask or "
-                "add DoF the corners see")
+        return Problem("unobservable", f"the valid corners see no combination of the DoF in "
+                       f"dof_mask above min_snr {self.settings.min_snr:g} (best "
+                       f"{obs.snr[0]:.2g}); drop {', '.join(names[:6])}"
+                       f"{' ...' if len(names) > 6 else ''} from dof_mask or add DoF the "
+                       "corners see")
 
-    def _refused(self, status: str, corners: tuple[bool, ...], t0: float,
+    def _refused(self, problem: Problem, corners: tuple[bool, ...], t0: float,
                  angle_deg: float) -> C.OFCResult:
         sigma = np.sqrt(np.clip(np.diag(self.P), 0.0, None)) * self.dof_mask
-        return C.OFCResult(np.zeros(layout.N_DOF), self.dof_total.copy(), False, status,
+        return C.OFCResult(np.zeros(layout.N_DOF), self.dof_total.copy(), False, problem.status,
                            float("nan"), float("nan"), 0, np.zeros(layout.N_DOF),
                            np.zeros(layout.N_DOF, dtype=bool), float("nan"), corners,
                            time.perf_counter() - t0, sigma,
                            rotator_angle_deg=float(angle_deg) if np.isfinite(angle_deg)
-                           else float("nan"))
+                           else float("nan"), reason=problem.reason)
 
     def observability_report(self, angle_deg: float = 0.0,
                              corner_valid: Sequence[bool] | None = None) -> Observability:

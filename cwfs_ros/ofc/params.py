@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from cwfs_ros import layout
-from cwfs_ros.errors import ConfigError
+from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC, KalmanSettings
 from cwfs_ros.ofc.model import OpticalModel
@@ -136,10 +136,10 @@ def restore_record(ctl: C.OFCSolver, rec: dict[str, Any]) -> str:
     return f"accumulated DoF and last stamp of a {kind} state ({n_steps} visit(s))"
 
 
-def refusal(ctl: C.OFCSolver, status: str) -> C.OFCResult:
+def refusal(ctl: C.OFCSolver, problem: Problem) -> C.OFCResult:
     """A refused visit: no correction, the controller's state as it is."""
-    return C.OFCResult(np.zeros(layout.N_DOF), ctl.dof_total.copy(), False, status, float("nan"),
-                       float("nan"), 0)
+    return C.OFCResult(np.zeros(layout.N_DOF), ctl.dof_total.copy(), False, problem.status,
+                       float("nan"), float("nan"), 0, reason=problem.reason)
 
 
 def rotator_angle_for(get: Callable[[str], Any], history: Any,
@@ -159,11 +159,12 @@ def step_controller(ctl: C.OFCSolver, z: np.ndarray, valid: np.ndarray, *,
     """One visit through either controller, as ofc_node and the offline replay both run it:
     refused without a rotator angle; the pid controller refuses a rotated camera."""
     if angle_deg is None:
-        return refusal(ctl, f"no_rotator_angle: {angle_why}")
+        return refusal(ctl, Problem("no_rotator_angle", angle_why))
     if isinstance(ctl, KalmanOFC):
         return ctl.step(z, valid, uncertainty_nm=uncertainty_nm, rotator_angle_deg=angle_deg,
                         stamp_ns=stamp_ns, now_ns=now_ns, dry_run=dry_run)
     if abs(angle_deg) > PID_MAX_ANGLE_DEG:
-        return refusal(ctl, f"rotator_unsupported: the pid controller has no rotator model "
-                            f"and the camera is at {angle_deg:.3g} deg; use controller kalman")
+        return refusal(ctl, Problem("rotator_unsupported", f"the pid controller has no rotator "
+                                    f"model and the camera is at {angle_deg:.3g} deg; use "
+                                    "controller kalman"))
     return ctl.step(z, valid, stamp_ns=stamp_ns, now_ns=now_ns, dry_run=dry_run)

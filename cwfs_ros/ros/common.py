@@ -41,6 +41,8 @@ from rcl_interfaces.msg import (
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from cwfs_ros.errors import Problem
+
 __all__ = [
     "DIAGNOSTICS_QOS",
     "IMAGE_QOS",
@@ -155,7 +157,7 @@ def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def stamp_problem(stamp: Time) -> str | None:
+def stamp_problem(stamp: Time) -> Problem | None:
     """Why a header stamp cannot be used, or None.
 
     builtin_interfaces/Time requires ``nanosec`` below 1e9, but nothing enforces it: such a
@@ -164,8 +166,8 @@ def stamp_problem(stamp: Time) -> str | None:
     publication or go out with another visit's stamp.
     """
     if int(stamp.nanosec) >= 1_000_000_000:
-        return (f"bad_stamp: nanosec {int(stamp.nanosec)} is not below 1e9 "
-                "(builtin_interfaces/Time)")
+        return Problem("bad_stamp", f"nanosec {int(stamp.nanosec)} is not below 1e9 "
+                       "(builtin_interfaces/Time)")
     return None
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from cwfs_msgs.msg import CornerWavefront, DofCorrection, WavefrontVector
 from sensor_msgs.msg import Image
 
+from cwfs_ros.errors import Problem
 from cwfs_ros.layout import CORNERS, NOLL
 from cwfs_ros.ros.common import ns_to_stamp, stamp_to_ns
 from cwfs_ros.runtime.corner_pool import CornerOutcome
@@ -113,7 +114,7 @@ def wavefront_vector_msg(v: VisitVector, frame_id: str) -> WavefrontVector:
     return m
 
 
-def vector_from_msg(m: WavefrontVector) -> tuple[np.ndarray, np.ndarray, str | None]:
+def vector_from_msg(m: WavefrontVector) -> tuple[np.ndarray, np.ndarray, Problem | None]:
     """(zernikes (76,), corner_valid (4,), problem) from a WavefrontVector.
 
     ``problem`` is None when the layout is the documented one; otherwise it names the issue
@@ -124,10 +125,11 @@ def vector_from_msg(m: WavefrontVector) -> tuple[np.ndarray, np.ndarray, str | N
     names = [str(c) for c in m.corners]
     problem = None
     if z.shape != (len(CORNERS) * len(NOLL),) or valid.shape != (len(CORNERS),):
-        problem = (f"bad_layout: expected {len(CORNERS) * len(NOLL)} Zernikes and "
-                   f"{len(CORNERS)} validity flags, got {z.size} and {valid.size}")
+        problem = Problem("bad_layout", f"expected {len(CORNERS) * len(NOLL)} Zernikes and "
+                          f"{len(CORNERS)} validity flags, got {z.size} and {valid.size}")
     elif any(names) and names != list(CORNERS):
-        problem = f"bad_layout: corners must be {list(CORNERS)} in this order, got {names}"
+        problem = Problem("bad_layout",
+                          f"corners must be {list(CORNERS)} in this order, got {names}")
     return z, valid, problem
 
 

@@ -93,24 +93,11 @@ def ros_arguments(params_files: Sequence[str | Path] = (),
 
 
 def load_node_class(name: str) -> type:
-    """The node class of ``name`` (imported lazily; camera_sim_node may not exist yet)."""
+    """The node class of ``name``, imported on first use (rclpy loads only when a node runs)."""
     if name not in NODES:
         raise LaunchError(f"unknown node {name!r}; known: {', '.join(sorted(NODES))}")
     module, cls = NODES[name]
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name == module:
-            raise LaunchError(
-                f"{name} is not available: module {module} (class {cls}) is not installed in "
-                "this checkout yet" + (" (bringup --sim needs it; run bringup without --sim, "
-                                       "or add the camera simulator)" if name == SIM_NODE
-                                       else "")) from None
-        raise
-    try:
-        return getattr(mod, cls)
-    except AttributeError:
-        raise LaunchError(f"{module} does not define {cls}, the class of {name}") from None
+    return getattr(importlib.import_module(module), cls)
 
 
 def spin_until_shutdown(executor) -> None:

@@ -56,7 +56,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from cwfs_ros.errors import ConfigError
+from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.layout import CORRECTION_TOPIC, JOINT_TOPIC, VECTOR_TOPIC
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc import plausibility as P
@@ -152,8 +152,8 @@ class OfcNode(ManagedNode):
             self.last_result: C.OFCResult | None = None
             self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
             self.state_file = str(self._param("state_file"))
-            self.state_problem: str | None = None
-            self.save_problem: str | None = None
+            self.state_problem: Problem | None = None
+            self.save_problem: Problem | None = None
             self._load_state()
         # A managed publisher: whatever path reaches it, nothing goes out unless active.
         self.pub = self.create_lifecycle_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
@@ -375,7 +375,7 @@ class OfcNode(ManagedNode):
             b = self._bounds = P.physical_bounds(band, src, margin)
         return b
 
-    def _guard_vector(self, msg: WavefrontVector, stamp: int) -> tuple[str, bool] | None:
+    def _guard_vector(self, msg: WavefrontVector, stamp: int) -> tuple[Problem, bool] | None:
         """Why the vector is refused before the solver, or None; with whether to publish the
         refusal (False for a repeat or a visit too soon: answering a flood message by
         message would pass it on)."""
@@ -390,13 +390,13 @@ class OfcNode(ManagedNode):
             self.guard_counts.add(rate.reason, rate.message)
             self._log_guard(rate.reason, f"visit {stamp}: not integrated, no correction "
                             f"published: {rate.status}")
-            return rate.status, False
+            return Problem(rate.reason, rate.message), False
         v = P.check_vector(z, valid, self._plausibility_bounds(),
                            uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
                            n_pairs=np.asarray(list(msg.n_pairs)),
                            n_sigma=float(self._param("plausibility_n_sigma")),
                            min_corner_rms_nm=float(self._param("min_corner_rms_nm")))
-        return (v.status, True) if not v.ok else None
+        return (Problem(v.reason, v.message), True) if not v.ok else None
 
     def _note_integrated(self, msg: WavefrontVector, stamp: int, out: C.OFCResult,
                          dry: bool) -> None:
@@ -431,7 +431,7 @@ class OfcNode(ManagedNode):
         try:
             guard = self._guard_vector(msg, stamp)
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
-            guard = (f"internal_error: input guard: {type(exc).__name__}: {exc}", True)
+            guard = (Problem("internal_error", f"input guard: {type(exc).__name__}: {exc}"), True)
         if guard is not None:
             with self._lock:
                 self.stats["vectors"] += 1
@@ -457,7 +457,7 @@ class OfcNode(ManagedNode):
                 self._log_observability_change(out)
                 self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
-            out = self._refusal(f"internal_error: {type(exc).__name__}: {exc}")
+            out = self._refusal(Problem("internal_error", f"{type(exc).__name__}: {exc}"))
             dry = self.dry_run
         self._publish(stamp, out, dry)
         self._note_integrated(msg, stamp, out, dry)
@@ -525,7 +525,7 @@ class OfcNode(ManagedNode):
             self.solver.reset()  # nothing of a refused file stays in the controller
             # Never act from a state that may be wrong: refuse visits until an operator looks
             # (~/reset starts from the prior and overwrites the file).
-            self.state_problem = f"state_file_unreadable: {exc}"
+            self.state_problem = Problem("state_file_unreadable", str(exc))
             self.get_logger().error(f"{exc}; every visit is refused until ~/reset")
 
     def _persist(self, out: C.OFCResult, before: dict | None) -> C.OFCResult:
@@ -546,13 +546,14 @@ class OfcNode(ManagedNode):
         except OSError as exc:
             restore_record(self.solver, before)
             self.stats["state_saves_failed"] += 1
-            self.save_problem = f"state_not_saved: {self.state_file}: {exc}"
+            self.save_problem = Problem("state_not_saved", f"{self.state_file}: {exc}")
             self.get_logger().error(f"{self.save_problem}; the visit is not applied",
                                     throttle_duration_sec=10.0)
-            return self._refusal(f"{self.save_problem}; correction withheld (state unchanged)")
+            return self._refusal(Problem("state_not_saved", f"{self.save_problem.message}; "
+                                         "correction withheld (state unchanged)"))
 
-    def _refusal(self, status: str) -> C.OFCResult:
-        return refusal(self.solver, status)
+    def _refusal(self, problem: Problem) -> C.OFCResult:
+        return refusal(self.solver, problem)
 
     def _publish(self, stamp: int, out: C.OFCResult, dry: bool) -> None:
         self._account(str(stamp), out)
@@ -579,8 +580,7 @@ class OfcNode(ManagedNode):
             self.last_status = out.status
             self.last_ms = out.elapsed_s * 1e3
         if not out.valid:
-            tag = out.status.split(":", 1)[0]
-            self.refused.add(tag, out.status)
+            self.refused.add(out.reason, out.status)
             self.get_logger().warning(f"visit {visit}: correction refused: {out.status}")
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
@@ -598,7 +598,7 @@ class OfcNode(ManagedNode):
                     self.save_problem = None
                 except OSError as exc:
                     saved = f"; {self.state_file} NOT updated: {exc}"
-                    self.save_problem = f"state_not_saved: {self.state_file}: {exc}"
+                    self.save_problem = Problem("state_not_saved", f"{self.state_file}: {exc}")
         response.success = self.save_problem is None
         response.message = f"controller state cleared (it had accumulated {n} visit(s)){saved}"
         self.get_logger().info(response.message)

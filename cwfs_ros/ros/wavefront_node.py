@@ -501,7 +501,7 @@ class WavefrontNode(ManagedNode):
             return
         rec = image_record_from_msg(msg, corner, side, time.monotonic())
         if rec.error:
-            self._reject(Rejection(rec.error.split(":", 1)[0], f"{side} image of {corner}: "
+            self._reject(Rejection(rec.reason, f"{side} image of {corner}: "
                                    f"{rec.error}", corner, side, rec.stamp_ns), warn=True)
         with self._lock:
             self.stats["images"] += 1
@@ -582,9 +582,8 @@ class WavefrontNode(ManagedNode):
             settings = self.settings
             oi, oe = self.orientations[(c, "intra")], self.orientations[(c, "extra")]
         if pair.error is not None:
-            tag = (pair.intra.error or pair.extra.error or "bad_image").split(":", 1)[0]
-            self._publish_outcome(invalid_outcome(c, pair.stamp_ns, tag, pair.error, fi, fe,
-                                                  settings.solver), count=False)
+            self._publish_outcome(invalid_outcome(c, pair.stamp_ns, pair.reason, pair.error,
+                                                  fi, fe, settings.solver), count=False)
             return
         if self._is_frame_pair(pair.intra.image, pair.extra.image):
             from cwfs_ros.frames.selection import CornerFrameJob

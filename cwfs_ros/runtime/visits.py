@@ -98,8 +98,10 @@ class ImageRecord:
 
     Attributes:
         image: the decoded stamp (``None`` when decoding failed).
-        error: ``None``, or the ``"<tag>: <explanation>"`` of a decoding failure; the pair is
-            still formed so that the corner's result can say what was wrong.
+        error: ``None``, or the ``"<reason>: <explanation>"`` text of a decoding failure; the
+            pair is still formed so that the corner's result can say what was wrong.
+        reason: the decoding failure's tag (:class:`~cwfs_ros.runtime.images.ImageDecodeError`
+            ``reason``), ``""`` when decoded.
         received: monotonic receive time in seconds.
         digest: identity of the picture (see the module docstring: equal digests, same
             picture); empty when not computed, then the decoded pixels decide.
@@ -110,6 +112,7 @@ class ImageRecord:
     stamp_ns: int
     image: np.ndarray | None = None
     error: str | None = None
+    reason: str = ""
     frame_id: str = ""
     received: float = 0.0
     digest: bytes = b""
@@ -159,9 +162,9 @@ def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> 
                                  encoding=msg.encoding, step=msg.step,
                                  is_bigendian=bool(msg.is_bigendian))
     except ValueError as exc:  # ImageDecodeError is a ValueError
-        rec.error = str(exc)
+        rec.error, rec.reason = str(exc), str(getattr(exc, "reason", "bad_data"))
     except Exception as exc:  # noqa: BLE001 - a message must never crash the caller
-        rec.error = f"bad_data: {type(exc).__name__}: {exc}"
+        rec.error, rec.reason = f"bad_data: {type(exc).__name__}: {exc}", "bad_data"
     return rec
 
 
@@ -182,6 +185,11 @@ class PairReady:
     def error(self) -> str | None:
         errs = [f"{r.side} image {r.error}" for r in (self.intra, self.extra) if r.error]
         return "; ".join(errs) if errs else None
+
+    @property
+    def reason(self) -> str:
+        """The tag of the first undecodable image of the pair (``""`` when both decoded)."""
+        return self.intra.reason or self.extra.reason or ("bad_image" if self.error else "")
 
 
 class _Closed:

@@ -12,3 +12,6 @@ The computations live in small modules, one concern each:
 
 The entry point (argument parsing, report writing) is :mod:`cwfs_ros.cli.validate`.
 """
+
+# The figures are computed by submodule (the CLI imports them on demand: batoid is heavy).
+__all__ = ["beyond", "common", "loop_model", "paper", "plots"]
