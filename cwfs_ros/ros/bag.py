@@ -101,6 +101,9 @@ DEFAULT_TOPICS: dict[str, str] = {
     absolute(CORRECTION_TOPIC): "cwfs_msgs/msg/DofCorrection",
     absolute(TRUTH_TOPIC): "cwfs_msgs/msg/SimTruth",
     absolute(JOINT_TOPIC): "sensor_msgs/msg/JointState",
+    # The managed nodes' lifecycle transitions: when the loop was paused or resumed.
+    "/wavefront_node/transition_event": "lifecycle_msgs/msg/TransitionEvent",
+    "/ofc_node/transition_event": "lifecycle_msgs/msg/TransitionEvent",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 # `bag play` plays topics of this type only when they are named (see play()).
