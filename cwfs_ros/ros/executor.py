@@ -4,7 +4,7 @@ Why not rclpy's own: in rclpy 7.1.6 (the newest Jazzy wheel on PyPI, pinned in
 ``requirements/ros.txt``) the executor's scan of its in-progress tasks yields a callback
 that has been handed to the thread pool but has not started yet (it is neither executing
 nor done), and its wait set returns at once while that callback's message is still untaken
-(measured by a reviewer: ~8,000 such empty waits for 20 messages; the subscription's QoS
+(measured: ~8,000 such empty waits for 20 messages; the subscription's QoS
 event handlers keep reporting ready). So ``MultiThreadedExecutor`` submits the callback
 again and again, and the spin thread loops holding the GIL until a worker gets the GIL to
 start it (rclpy issue #1452, fixed upstream after 7.1.6). Measured on the 2-core VM
