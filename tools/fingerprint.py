@@ -148,6 +148,27 @@ def _rejections() -> Iterable[tuple[str, str]]:
     yield "estimate refusals", d.hexdigest()
 
 
+def blur_fingerprints() -> Iterable[tuple[str, str]]:
+    """design_donut and blur_reference at an on-axis and a vignetted corner field."""
+    from cwfs_ros.sim.render import corner_fields
+    from cwfs_ros.wfs.blur import design_donut
+    from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
+    from cwfs_ros.wfs.instrument import load_instrument
+
+    inst = load_instrument("lsst")
+    corner = tuple(float(v) for v in corner_fields()["R00"]["intra"])
+    for name, field in (("axis", (0.0, 0.0)), ("corner", corner)):
+        d = Digest()
+        g = pair_geometry(inst, "r", 622.0, field, field, 1.5, load_algorithm("lsq"))
+        d.array(design_donut(g.mapping_intra, g.x, g.y, g.spacing, inst.obscuration,
+                             (160, 160), (79.5, 79.5), sub=3))
+        d.array(design_donut(g.mapping_intra, g.x, g.y, g.spacing, inst.obscuration,
+                             (160, 160), (80.2, 78.9), g.transmissions[0],
+                             (g.shape, g.region), sub=3))
+        d.array(g.blur_reference(1.7, (160, 160)))
+        yield f"blur {name}", d.hexdigest()
+
+
 def frames_fingerprints() -> Iterable[tuple[str, str]]:
     """The frames path (detection, pairing, estimates, combination) on two small
     simulated half-chip frames, as in test/test_selection.py, with exp and lsq."""
@@ -263,6 +284,7 @@ def render_fingerprints() -> Iterable[tuple[str, str]]:
 def main(argv: list[str]) -> int:
     """Print ``<case>  <sha256>`` per case, and one over all of them."""
     sections = {"estimate": estimator_fingerprints, "refusals": _rejections,
+                "blur": blur_fingerprints,
                 "frames": frames_fingerprints, "render": render_fingerprints}
     chosen = argv or list(sections)
     total = hashlib.sha256()
