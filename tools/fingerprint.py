@@ -212,6 +212,23 @@ def frames_fingerprints() -> Iterable[tuple[str, str]]:
             res = estimate_corner_frames(frames["intra"], frames["extra"], corner="R00",
                                          settings=EstimatorSettings(solver=solver), config=cfg)
             yield f"frames {solver} {name}", _corner_digest(res)
+    # A half without a usable donut; a short loop with a seeing; pairs that all fail.
+    sky = np.random.default_rng(9).poisson(20.0, shape).astype(float)
+    cfg = SelectionConfig(detection=detection)
+    for name, (fi, fe), settings in (
+            ("no_donuts", (frames["intra"], sky), EstimatorSettings(solver="lsq")),
+            ("exp_short_seeing", (frames["intra"], frames["extra"]),
+             EstimatorSettings(solver="exp", outer_iterations=2, seeing_fwhm_arcsec=0.7)),
+            ("failing_pairs", (frames["intra"], frames["extra"]),
+             EstimatorSettings(solver="lsq", seeing_fwhm_arcsec=99.0))):
+        try:
+            res = estimate_corner_frames(fi, fe, corner="R00", settings=settings, config=cfg)
+        except Exception as exc:  # noqa: BLE001 - the refusal is the output
+            d = Digest()
+            d.text(f"{type(exc).__name__} {exc}")
+            yield f"frames {name} (raised)", d.hexdigest()
+        else:
+            yield f"frames {name}", _corner_digest(res)
     # The combination alone, on planted outliers (test_selection.py's cases).
     d = Digest()
     for seed in range(40):
