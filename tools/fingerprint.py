@@ -296,6 +296,27 @@ def render_fingerprints() -> Iterable[tuple[str, str]]:
                 raise RuntimeError(f"render variant {kw} left the stamp empty")
             d.array(img)
         yield f"render seed {seed}", d.hexdigest()
+    yield "render visit and paper pair", _render_callers(tel)
+
+
+def _render_callers(tel: Any) -> str:
+    """render_donut as the visit renderer and the paper's validation call it."""
+    from cwfs_ros.sim.visit import DonutSpec, render_visit
+    from cwfs_ros.validation.common import SPLIT
+    from cwfs_ros.validation.paper import lsst_pair
+
+    d = Digest()
+    for photons in (None, 2e5):
+        for img in lsst_pair(tel, (1.1, 1.2), (1.2, 1.1), SPLIT, 622.0, photons,
+                             np.random.default_rng(4), rays=2**16):
+            d.array(img)
+    specs = [DonutSpec(("R00", s), (1.19 * s, -1.1), 1.5 * s, (0.3, -0.7), 11 + i)
+             for i, s in enumerate((-1, 1))]
+    out = render_visit(tel, specs, wavelength_nm=622.0, n_photons=1e5, sky_per_pixel=20.0,
+                       seeing_fwhm_arcsec=0.6, read_noise_e=2.0)
+    for key in sorted(out):
+        d.array(out[key])
+    return d.hexdigest()
 
 
 def main(argv: list[str]) -> int:

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import batoid
 import numpy as np
 
-from cwfs_ros.sim.render import render_donut
+from cwfs_ros.sim.render import RenderSettings, render_donut
 from cwfs_ros.sim.telescope import defocused, load_lsst, perturbed_telescope
 
 __all__ = ["StarSpec", "InjectedStar", "SimulatedFrame", "star_field_deg", "random_stars",
@@ -243,34 +243,18 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     rows, cols = shape_px
     ref = reference_px if reference_px is not None else ((cols - 1) / 2.0, (rows - 1) / 2.0)
     img = np.zeros((rows, cols), dtype=np.float64)
-    design = load_lsst(band)
-    ref_field = field_ref_deg
-    if rotator_angle_deg:
-        from cwfs_ros.ofc.rotation import telescope_field_deg
-
-        design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
-        g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]
-        ref_field = (float(g[0]), float(g[1]))
+    design, ref_field = _design_frame(band, field_ref_deg, rotator_angle_deg)
+    settings = RenderSettings(wavelength_nm=wavelength_nm, npix=render_px, pixel_um=pixel_um,
+                              centre="chief", poisson=False,
+                              seeing_fwhm_arcsec=seeing_fwhm_arcsec)
     truth = []
-    c = (render_px - 1) / 2.0
     for s in stars:
         fld = star_field_deg(s.x, s.y, field_ref_deg=ref_field, reference_px=ref,
                              detector_offset_mm=detector_offset_mm, band=band,
                              wavelength_nm=wavelength_nm, pixel_um=pixel_um, optic=design)
         n = int(rng.poisson(s.flux))
-        # Stamp origin so that the chief ray lands at (s.x, s.y): render_donut puts it at
-        # (render_px - 1) / 2 + offset in pixel-centre coordinates.
-        x0, y0 = int(np.floor(s.x - c)), int(np.floor(s.y - c))
-        off = (s.x - c - x0, s.y - c - y0)
         if n > 0:
-            st = render_donut(telescope, fld, detector_offset_mm, wavelength_nm=wavelength_nm,
-                              npix=render_px, pixel_um=pixel_um, n_photons=n, n_rays=n,
-                              offset_px=off, rng=rng, centre="chief", poisson=False,
-                              seeing_fwhm_arcsec=seeing_fwhm_arcsec)
-            ya, yb = max(y0, 0), min(y0 + render_px, rows)
-            xa, xb = max(x0, 0), min(x0 + render_px, cols)
-            if ya < yb and xa < xb:
-                img[ya:yb, xa:xb] += st[ya - y0:yb - y0, xa - x0:xb - x0]
+            _add_star(img, telescope, fld, detector_offset_mm, (s.x, s.y), n, settings, rng)
         truth.append(InjectedStar(float(s.x), float(s.y), fld, float(s.flux), n,
                                   tuple(s.flags)))
     if sky_per_pixel > 0:
@@ -282,3 +266,37 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     return SimulatedFrame(img.astype(np.float32), tuple(truth), float(sky_per_pixel),
                           (float(field_ref_deg[0]), float(field_ref_deg[1])),
                           (float(ref[0]), float(ref[1])), float(detector_offset_mm))
+
+
+def _design_frame(band: str, field_ref_deg: tuple[float, float], rotator_angle_deg: float
+                  ) -> tuple[batoid.Optic, tuple[float, float]]:
+    """(design telescope, reference field) through which star fields are found: the
+    nominal design, or with a rotated camera the rotated design and the reference field in
+    the telescope's frame."""
+    if not rotator_angle_deg:
+        return load_lsst(band), field_ref_deg
+    from cwfs_ros.ofc.rotation import telescope_field_deg
+
+    design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
+    g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]
+    return design, (float(g[0]), float(g[1]))
+
+
+def _add_star(img: np.ndarray, telescope: batoid.Optic, field_deg: tuple[float, float],
+              detector_offset_mm: float, xy_px: tuple[float, float], n_photons: int,
+              settings: RenderSettings, rng: np.random.Generator) -> None:
+    """Add one star's ``n_photons`` (one ray each, noise-free binning) to ``img``, its chief
+    ray at pixel ``xy_px`` (col, row; pixel-centre convention), clipped at the frame."""
+    rows, cols = img.shape
+    render_px = settings.npix
+    # Stamp origin so that the chief ray lands at xy_px: render_donut puts it at
+    # (render_px - 1) / 2 + offset in pixel-centre coordinates.
+    c = (render_px - 1) / 2.0
+    x0, y0 = int(np.floor(xy_px[0] - c)), int(np.floor(xy_px[1] - c))
+    off = (xy_px[0] - c - x0, xy_px[1] - c - y0)
+    st = render_donut(telescope, field_deg, detector_offset_mm, settings, n_photons=n_photons,
+                      n_rays=n_photons, offset_px=off, rng=rng)
+    ya, yb = max(y0, 0), min(y0 + render_px, rows)
+    xa, xb = max(x0, 0), min(x0 + render_px, cols)
+    if ya < yb and xa < xb:
+        img[ya:yb, xa:xb] += st[ya - y0:yb - y0, xa - x0:xb - x0]
