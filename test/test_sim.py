@@ -14,6 +14,7 @@ import pytest
 from cwfs_ros.sim import (
     N_DOF,
     TS_OFC_FLIPPED_DOF,
+    RenderSettings,
     bending_zernikes,
     corner_fields,
     defocused,
@@ -22,7 +23,6 @@ from cwfs_ros.sim import (
     perturbed_telescope,
     plate_scale_um_per_arcsec,
     pupil_vignetting_fraction,
-    RenderSettings,
     render_donut,
     trace_pupil_rays,
     true_zernikes_nm,

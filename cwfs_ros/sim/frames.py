@@ -230,7 +230,7 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
         pixel_um: pixel pitch.
         seeing_fwhm_arcsec: FWHM of a Gaussian atmospheric blur of every star (each photon
             is displaced at random, as in :func:`~cwfs_ros.sim.render.render_donut`); 0 =
-            none, which leaves the frame's random stream as it was without seeing.
+            none, which draws no seeing offsets (the random stream of a frame without seeing).
         rng: random generator.
         rotator_angle_deg: camera rotator angle [deg]; ``telescope`` must be built with the
             same angle. ``field_ref_deg`` is then the camera-frame (nominal) field of the

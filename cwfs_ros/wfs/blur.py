@@ -7,11 +7,11 @@ before it samples the images (:func:`.estimator.estimate_wavefront`).  The two m
 differ (the fast beam, §3.2; the design aberrations off axis, §3.3; two fields on a split
 sensor, §3.4), so the blurred rim and obscuration of the two compensated images differ
 by a few hundredths of a pixel, and the curvature of a blurred circle moves its
-half-light edge by ``sigma^2 / 2R``.  The TIE difference image (eq. 8) then holds an edge
-signal that no wavefront made.  The least-squares solver reads the wavefront from the
-edges (:class:`.tie.LeastSquares`).  Without noise, at the corner sensors and with 1"
-seeing, it read 10-14 nm rms of astigmatism and trefoil out of that signal
-(``bench/bench_seeing.py``).
+half-light edge by ``sigma^2 / 2R``.  The TIE signal, the difference of the images
+(§2.1), then holds an edge signal that no wavefront made.  The least-squares solver reads
+the wavefront from the edges (:class:`.tie.LeastSquares`).  Without noise, at the corner
+sensors and with 1" seeing, it read 10-14 nm rms of astigmatism and trefoil out of that
+signal (``bench/bench_seeing.py``).
 
 :func:`blur_reference` predicts that signal. It renders the design donut of each side
 from its mapping (:func:`design_donut`: the uniform pupil carried to the image and

@@ -644,7 +644,8 @@ class WavefrontResult:
     departure_all_nm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def __repr__(self) -> str:
-        # One line; the arrays are in the attributes (the dataclass repr was ~6000 chars).
+        # One line; the arrays are in the attributes (the default dataclass repr would be
+        # ~6000 characters).
         dep = self.zernikes_nm - self.intrinsic_nm
         flags = [n for n, on in (("caustic", self.caustic), ("not settled", not self.converged))
                  if on]
@@ -830,7 +831,8 @@ class EstimateConfig:
 
 
 def _check_pair_shapes(intra: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two images as arrays; the difference image (eq. 4) needs them the same shape."""
+    """The two images as arrays; the TIE signal (§2.1: their difference) needs them the
+    same shape."""
     a_in, a_ex = np.asarray(intra), np.asarray(extra)
     if a_in.shape != a_ex.shape:
         raise ShapeMismatchError(
@@ -889,10 +891,10 @@ def _loop_inputs(donuts: tuple[PreparedDonut, PreparedDonut], cfg: EstimateConfi
 
     Alignment: each image is placed so that its centroid falls where the mapping, with the
     current wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves
-    that centroid by C * mean(grad W) over the pupil (eq. 9-10), which is not zero for coma,
-    nor for any term on a vignetted pupil, and differs between the two halves of a split
-    sensor (§3.4).  Tip/tilt itself then has no effect; it is solved for as a nuisance term
-    and dropped.
+    that centroid by C * mean(grad W) over the pupil (§2.1: x' = x + C dW/dx), which is not
+    zero for coma, nor for any term on a vignetted pupil, and differs between the two halves
+    of a split sensor (§3.4).  Tip/tilt itself then has no effect; it is solved for as a
+    nuisance term and dropped.
 
     Smoothing: a light Gaussian blur makes the images smooth on the scale of the pupil
     sampling, so that point-sampling them (compensation) integrates flux without a
@@ -1010,7 +1012,8 @@ def _outer_loop(geom: PairGeometry, inputs: _LoopInputs, algo: AlgorithmConfig,
 def _compensate_pair(geom: PairGeometry, images: tuple[np.ndarray, np.ndarray],
                      base_xy: tuple[np.ndarray, np.ndarray], w_comp: np.ndarray
                      ) -> tuple[Compensated, Compensated]:
-    """Both images remapped to the pupil for the wavefront ``w_comp`` (eq. 9-12, box b).
+    """Both images remapped to the pupil for the wavefront ``w_comp`` (§2.1: the
+    mapping x' = x + C grad W and its Jacobian; Fig. 3 box b).
 
     Each image's reference point moves with the centroid shift the compensated wavefront
     causes (``C * mean(grad W)``, see :func:`_loop_inputs`).
@@ -1045,9 +1048,9 @@ def _register_on_rim(geom: PairGeometry, i_in: np.ndarray, i_ex: np.ndarray,
 def _solve_residual(geom: PairGeometry, i_in: np.ndarray, i_ex: np.ndarray,
                     blur_ref: np.ndarray | None) -> np.ndarray:
     """The residual wavefront Z1..Z_jmax (nm) of the compensated images (box c): the TIE
-    (eq. 1) solved for the weighted difference image (eq. 4, on the common pupil of §3.4)
-    less the blur's own edge signal.  Piston has no signal, and tip/tilt is taken out by the
-    alignment: both are set to zero."""
+    (§2, eq. 1) solved for the weighted difference image (§2.1's signal, on the common pupil
+    of §3.4) less the blur's own edge signal.  Piston has no signal, and tip/tilt is taken
+    out by the alignment: both are set to zero."""
     d_i = (i_in - i_ex) * geom.weight
     if blur_ref is not None:
         d_i -= blur_ref
