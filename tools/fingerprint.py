@@ -297,6 +297,22 @@ def render_fingerprints() -> Iterable[tuple[str, str]]:
             d.array(img)
         yield f"render seed {seed}", d.hexdigest()
     yield "render visit and paper pair", _render_callers(tel)
+    yield "random star layouts", _star_layouts()
+
+
+def _star_layouts() -> str:
+    """random_stars with every kind of star, a few seeds."""
+    from cwfs_ros.sim.frames import random_stars
+
+    d = Digest()
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        stars = random_stars(rng, (2000, 1000), n_good=(2, 5), blend=seed % 2 == 0,
+                             faint=seed % 3 == 0, edge=seed % 2 == 1, saturated=seed > 2)
+        for st in stars:
+            d.text(st)
+        d.array(rng.random(3))  # the stream left after the layout
+    return d.hexdigest()
 
 
 def _render_callers(tel: Any) -> str:

@@ -154,53 +154,73 @@ def random_stars(rng: np.random.Generator, shape_px: tuple[int, int], *,
         shape_px: (rows, cols).
         n_good: number of good stars, or an inclusive (min, max) range.
     """
-    rows, cols = shape_px
     r = donut_outer_radius_px(detector_offset_mm)
     sep = stamp_px / 2 + 2 * r + 40.0
     margin = stamp_px / 2 + 12.0
     n = n_good if isinstance(n_good, int) else int(rng.integers(n_good[0], n_good[1] + 1))
-    placed: list[StarSpec] = []
+    layout = _Layout(rng, shape_px, max_tries)
+    lo, hi = np.log(flux_range[0]), np.log(flux_range[1])
+    if blend:
+        x, y = layout.spot(sep + 1.5 * r, margin + 1.5 * r)
+        phi = rng.uniform(0, 2 * np.pi)
+        s = rng.uniform(0.5, 1.5) * r
+        layout.placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi))), ("blend",)))
+        layout.placed.append(StarSpec(x + s * np.cos(phi), y + s * np.sin(phi),
+                                      float(np.exp(rng.uniform(lo, hi))), ("blend",)))
+    if edge:
+        layout.edge_star(0.3 * r, margin, sep, (lo, hi))
+    if saturated:
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(saturated_flux or 20 * flux_range[1]),
+                                      ("saturated",)))
+    if faint:
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(faint_flux), ("faint",)))
+    for _ in range(n):
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi)))))
+    return layout.placed
 
-    def free(x: float, y: float, d: float) -> bool:
-        return all(np.hypot(x - s.x, y - s.y) >= d for s in placed)
 
-    def spot(d: float, m: float) -> tuple[float, float]:
-        for _ in range(max_tries):
-            x, y = rng.uniform(m, cols - 1 - m), rng.uniform(m, rows - 1 - m)
-            if free(x, y, d):
+@dataclass
+class _Layout:
+    """Stars placed so far on a frame of ``shape_px`` (rows, cols), and where a new one fits."""
+
+    rng: np.random.Generator
+    shape_px: tuple[int, int]
+    max_tries: int
+    placed: list[StarSpec] = field(default_factory=list)
+
+    def free(self, x: float, y: float, d: float) -> bool:
+        """No star placed within ``d`` px of (x, y)."""
+        return all(np.hypot(x - s.x, y - s.y) >= d for s in self.placed)
+
+    def spot(self, d: float, m: float) -> tuple[float, float]:
+        """A uniform random position at least ``m`` px inside the frame and ``d`` px from
+        every star placed; ValueError after ``max_tries`` misses."""
+        rows, cols = self.shape_px
+        for _ in range(self.max_tries):
+            x, y = self.rng.uniform(m, cols - 1 - m), self.rng.uniform(m, rows - 1 - m)
+            if self.free(x, y, d):
                 return float(x), float(y)
         raise ValueError(f"cannot place a star {d:.0f} px from the others in a "
                          f"{cols}x{rows} frame; use fewer stars or a larger frame")
 
-    lo, hi = np.log(flux_range[0]), np.log(flux_range[1])
-    if blend:
-        x, y = spot(sep + 1.5 * r, margin + 1.5 * r)
-        phi = rng.uniform(0, 2 * np.pi)
-        s = rng.uniform(0.5, 1.5) * r
-        placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi))), ("blend",)))
-        placed.append(StarSpec(x + s * np.cos(phi), y + s * np.sin(phi),
-                               float(np.exp(rng.uniform(lo, hi))), ("blend",)))
-    if edge:
-        side = int(rng.integers(4))
-        for _ in range(max_tries):
-            t = rng.uniform(margin, (cols if side < 2 else rows) - 1 - margin)
-            e = 0.3 * r
+    def edge_star(self, inset: float, margin: float, sep: float,
+                  log_flux: tuple[float, float]) -> None:
+        """Place a star ``inset`` px inside a random edge, ``sep`` px from the others (none
+        if no such spot turns up in ``max_tries``)."""
+        rows, cols = self.shape_px
+        side = int(self.rng.integers(4))
+        for _ in range(self.max_tries):
+            t = self.rng.uniform(margin, (cols if side < 2 else rows) - 1 - margin)
+            e = inset
             x, y = {0: (t, e), 1: (t, rows - 1 - e), 2: (e, t), 3: (cols - 1 - e, t)}[side]
-            if free(x, y, sep):
-                placed.append(StarSpec(float(x), float(y), float(np.exp(rng.uniform(lo, hi))),
-                                       ("edge",)))
-                break
-    if saturated:
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(saturated_flux or 20 * flux_range[1]),
-                               ("saturated",)))
-    if faint:
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(faint_flux), ("faint",)))
-    for _ in range(n):
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi)))))
-    return placed
+            if self.free(x, y, sep):
+                self.placed.append(StarSpec(float(x), float(y),
+                                            float(np.exp(self.rng.uniform(*log_flux))),
+                                            ("edge",)))
+                return
 
 
 def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,

@@ -463,10 +463,7 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
               tile_deg=algo.map_tile_deg)
     full_in = nominal_mapping(inst, "intra", x, y, field_deg=field_intra_deg, **kw)
     full_ex = nominal_mapping(inst, "extra", x, y, field_deg=field_extra_deg, **kw)
-    grid_in = np.zeros(n * n, bool)
-    grid_ex = np.zeros(n * n, bool)
-    grid_in[cand] = full_in.transmitted
-    grid_ex[cand] = full_ex.transmitted
+    grid_in, grid_ex = (_on_grid(n, cand, m.transmitted) for m in (full_in, full_ex))
     if not (grid_in & grid_ex).any():
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
@@ -490,10 +487,10 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     outer = _outer_radius_px(m_in, m_ex)
     feedback_l = (np.linalg.cholesky(gram_matrix(basis, common, j_min=1, j_max=basis.jmax))
                   if algo.feedback_basis == "orthonormal" else None)
-    r_pupil = np.hypot(x, y)
-    annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
     rim_index, rim_pinv = (None, None)
     if algo.register_rim:
+        r_pupil = np.hypot(x, y)
+        annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
         rim_index, rim_pinv = _rim_registration((n, n), spacing, region, x, y, annulus,
                                                 mask_in, mask_ex, r_d * algo.oversample,
                                                 algo)
@@ -523,6 +520,14 @@ def _grid_side(r_d: float, algo: AlgorithmConfig) -> tuple[float, float, int]:
     extent = 1.08 + (algo.boundary_px + 3) / r_d
     n = sfft.next_fast_len(2 * int(np.ceil(extent / spacing)) + 1, real=True)
     return spacing, extent, n
+
+
+def _on_grid(n: int, cand: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The candidate points' boolean ``values`` on the flat (n, n) pupil grid (False off
+    them)."""
+    grid = np.zeros(n * n, bool)
+    grid[cand] = values
+    return grid
 
 
 def _on_region(m: ImageMapping, pos: np.ndarray) -> ImageMapping:
