@@ -764,10 +764,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         saturation_level=saturation_level, seeing_fwhm_arcsec=seeing_fwhm_arcsec,
         **algorithm)
     a_in, a_ex = _check_pair_shapes(intra, extra)
-    hits = pair_geometry.cache_info().hits
-    geom = pair_geometry(cfg.instrument, cfg.band, cfg.wavelength_nm, cfg.field_intra_deg,
-                         cfg.field_extra_deg, cfg.defocal_offset_mm, cfg.algorithm)
-    geom_time_s = 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
+    geom, geom_time_s = _geometry(cfg)
     donuts, swap = _prepare_donuts(a_in, a_ex, cfg, geom)
     loop = _outer_loop(geom, _loop_inputs(donuts, cfg, geom), cfg.algorithm, initial_nm)
     return _result(cfg, geom, donuts, swap, loop,
@@ -847,6 +844,15 @@ def _check_pair_shapes(intra: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray
 
 
 # -- step 2: prepare the donuts ---------------------------------------------------------
+
+def _geometry(cfg: EstimateConfig) -> tuple[PairGeometry, float]:
+    """The pair's geometry (:func:`pair_geometry`, cached) and the time spent building it
+    in this call (0 when it came from the cache)."""
+    hits = pair_geometry.cache_info().hits
+    geom = pair_geometry(cfg.instrument, cfg.band, cfg.wavelength_nm, cfg.field_intra_deg,
+                         cfg.field_extra_deg, cfg.defocal_offset_mm, cfg.algorithm)
+    return geom, 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
+
 
 def _prepare_donuts(a_in: np.ndarray, a_ex: np.ndarray, cfg: EstimateConfig,
                     geom: PairGeometry) -> tuple[tuple[PreparedDonut, PreparedDonut],
