@@ -1,9 +1,10 @@
 """SHA-256 fingerprints of the numerical outputs of the estimator, the frames path and the
 renderer, so that a change meant to keep behaviour can show that it did, bit for bit.
 
-Run: ``python tools/fingerprint.py`` (about a minute); compare the printed lines before and
-after the change.  Every float output is hashed as little-endian float64, every status or
-message as UTF-8 text, in a fixed order.  Timings and process ids are left out.
+Run: ``python tools/fingerprint.py [section ...]`` (sections: estimate, refusals, blur, frames,
+render; all by default; 20-30 s); compare the printed lines before and after the change.
+Every float output is hashed as little-endian float64, every status or message as UTF-8
+text, in a fixed order.  Timings and process ids are left out.
 """
 
 from __future__ import annotations
