@@ -14,6 +14,7 @@ import pytest
 from cwfs_ros.sim import (
     N_DOF,
     TS_OFC_FLIPPED_DOF,
+    RenderSettings,
     bending_zernikes,
     corner_fields,
     defocused,
@@ -192,6 +193,27 @@ def test_nominal_donut_diameter_and_hole(nominal):
     rr = np.hypot(xx - 79.5, yy - 79.5)
     assert img[rr < 0.85 * fast_in / 2].sum() == 0.0
     assert img[rr > 1.03 * fast / 2].sum() < 1e-3 * img.sum()
+
+
+def test_render_settings_are_checked_and_a_call_overrides_them(nominal):
+    """One RenderSettings for several donuts, each call replacing what differs: an integer
+    offset_px of 5 moves the same rays (same seed, no Poisson draw) by exactly 5 columns."""
+    settings = RenderSettings(wavelength_nm=WL, npix=200, n_photons=1e5, poisson=False)
+    a = render_donut(nominal, (0.0, 0.0), 1.5, settings, rng=np.random.default_rng(3))
+    b = render_donut(nominal, (0.0, 0.0), 1.5, settings, offset_px=(5.0, 0.0),
+                     rng=np.random.default_rng(3))
+    assert a.shape == (200, 200) and a.sum() > 0.9e5 * 0.9
+    np.testing.assert_array_equal(b[:, 5:], a[:, :-5])
+    assert settings.offset_px == (0.0, 0.0)  # the shared settings are unchanged
+    for bad in (dict(npix=0), dict(n_photons=0.0), dict(centre="middle")):
+        with pytest.raises(ValueError):
+            RenderSettings(wavelength_nm=WL, **bad)
+        with pytest.raises(ValueError):
+            render_donut(nominal, (0.0, 0.0), 1.5, settings, **bad)
+    with pytest.raises(TypeError):
+        render_donut(nominal, (0.0, 0.0), 1.5, settings, n_photon=1e5)  # misspelt
+    with pytest.raises(TypeError):
+        render_donut(nominal, (0.0, 0.0), 1.5, npix=160)  # no wavelength
 
 
 # ------------------------------------------------------------------------------------------

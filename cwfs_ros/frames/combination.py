@@ -188,7 +188,6 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     n = d.shape[0]
     design = (np.zeros(N_TERMS) if design_ref_nm is None
               else np.asarray(design_ref_nm, dtype=np.float64).reshape(N_TERMS))
-    g = np.asarray(cfg.common_floor_nm)
     if n == 0:
         nan = np.full(N_TERMS, np.nan)
         return CombinedEstimate(nan, nan.copy(), 0, np.zeros(0, bool), np.zeros((0, N_TERMS),
@@ -198,35 +197,72 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
     # A pair without a finite noise scale has no weight to combine with (NaN would spread
     # to the combination where fewer than 3 pairs leave the robust loop out).
     finite = np.all(np.isfinite(d), axis=1) & np.isfinite(q)
+    used, term_used, chi, fallback = _reject_outliers(d, sig, finite, cfg)
+    mean, unc = _weighted_mean(d, sig, term_used, cfg)
+    n_used = int(used.sum())
+    if n_used >= 2:
+        unc = unc * cfg.multi_pair_scale
+    z = mean + design
+    if not used.any():
+        z = np.full(N_TERMS, np.nan)
+        unc = np.full(N_TERMS, np.nan)
+    red = _reduced_chi2(d, sig, used, mean, cfg)
+    ambiguous = _has_rival(d, q, finite & ~used, n_used, cfg)
+    consistent = not (cfg.max_reduced_chi2 > 0
+                      and (ambiguous or red > cfg.max_reduced_chi2))
+    return CombinedEstimate(z, unc, n_used, used, term_used, chi, red, fallback, ambiguous,
+                            consistent)
+
+
+def _reject_outliers(d: np.ndarray, sig: np.ndarray, finite: np.ndarray,
+                     cfg: CombinationConfig
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """(used, term_used, chi, fallback): which pairs, and which terms of them, enter the
+    mean, each pair's robust rms normalised residual, and whether the whole-pair clip had
+    to fall back to the two most consistent pairs.
+
+    With three pairs or more, up to ``max_iter`` passes: the robust centre of each term is
+    the median of the pairs still in (a planted outlier cannot drag it, unlike the mean);
+    a pair whose robust rms residual over the terms (median |r| / 0.6745) exceeds
+    ``pair_clip`` is dropped whole (one wild term must not throw out its other 18), and a
+    term further than ``clip_sigma`` from its centre is dropped alone, never below two pairs.
+    """
+    n = d.shape[0]
     used = finite.copy()
     term_used = np.repeat(used[:, None], N_TERMS, axis=1)
     chi = np.zeros(n)
     fallback = False
-    if used.sum() >= 3:
-        for _ in range(cfg.max_iter):
-            # Robust centre: the median of the pairs still in (a planted outlier cannot drag
-            # it, unlike the mean); residuals in units of each pair's expected error.
-            centre = np.array([np.median(d[term_used[:, j], j]) if term_used[:, j].any()
-                               else 0.0 for j in range(N_TERMS)])
-            r = (d - centre[None, :]) / sig
-            r[~finite] = np.inf
-            # Robust rms over the terms (median |r| / 0.6745): one wild term is clipped on
-            # its own below, it must not throw out the pair's other 18.
-            chi = np.median(np.abs(np.where(np.isfinite(r), r, 1e6)), axis=1) / 0.6745
-            new_used = finite & (chi <= cfg.pair_clip)
-            fallback = bool(new_used.sum() < 2)
-            if fallback:  # keep the two most consistent pairs rather than none
-                keep = np.argsort(chi)[:2]
-                new_used = np.zeros(n, bool)
-                new_used[keep] = finite[keep]
-            new_term = new_used[:, None] & (np.abs(r) <= cfg.clip_sigma)
-            # Never drop a term below two pairs because of the clipping.
-            for j in range(N_TERMS):
-                if new_term[:, j].sum() < min(2, new_used.sum()):
-                    new_term[:, j] = new_used
-            if np.array_equal(new_used, used) and np.array_equal(new_term, term_used):
-                break
-            used, term_used = new_used, new_term
+    if used.sum() < 3:
+        return used, term_used, chi, fallback
+    for _ in range(cfg.max_iter):
+        centre = np.array([np.median(d[term_used[:, j], j]) if term_used[:, j].any()
+                           else 0.0 for j in range(N_TERMS)])
+        r = (d - centre[None, :]) / sig
+        r[~finite] = np.inf
+        chi = np.median(np.abs(np.where(np.isfinite(r), r, 1e6)), axis=1) / 0.6745
+        new_used = finite & (chi <= cfg.pair_clip)
+        fallback = bool(new_used.sum() < 2)
+        if fallback:  # keep the two most consistent pairs rather than none
+            keep = np.argsort(chi)[:2]
+            new_used = np.zeros(n, bool)
+            new_used[keep] = finite[keep]
+        new_term = new_used[:, None] & (np.abs(r) <= cfg.clip_sigma)
+        for j in range(N_TERMS):
+            if new_term[:, j].sum() < min(2, new_used.sum()):
+                new_term[:, j] = new_used
+        if np.array_equal(new_used, used) and np.array_equal(new_term, term_used):
+            break
+        used, term_used = new_used, new_term
+    return used, term_used, chi, fallback
+
+
+def _weighted_mean(d: np.ndarray, sig: np.ndarray, term_used: np.ndarray,
+                   cfg: CombinationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, uncertainty) per term: the inverse-variance weighted mean of the terms used,
+    and the noise model's uncertainty of it rescaled by the observed scatter, shrunk towards
+    the model with ``prior_dof`` pairs of weight (with 2-3 pairs the sample scatter alone is
+    too noisy to be the error bar), plus the common floor in quadrature.  NaN for a term no
+    pair contributes to."""
     w = np.where(term_used, 1.0 / sig ** 2, 0.0)
     wsum = w.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -235,42 +271,37 @@ def combine_pairs(departure_nm: np.ndarray, noise_scale: np.ndarray, *,
         nj = term_used.sum(axis=0)
         resid2 = (w * np.where(term_used, d - mean[None, :], 0.0) ** 2).sum(axis=0)
         chi2 = np.where(nj > 1, resid2 / np.maximum(nj - 1, 1), 1.0)
-        # Shrink the observed reduced chi^2 towards 1 (the model) with prior_dof pairs of
-        # weight: with 2-3 pairs the sample scatter alone is too noisy to be the error bar.
         dof = np.maximum(nj - 1, 0)
         # No scatter to see (one pair) and no prior weight: the model alone, not zero.
         weight = cfg.prior_dof + dof
         scale2 = np.where(weight > 0, (cfg.prior_dof + dof * chi2) / np.maximum(weight, 1e-12),
                           1.0)
-    unc = np.sqrt(var_model * scale2 + g ** 2)
+    return mean, np.sqrt(var_model * scale2 + np.asarray(cfg.common_floor_nm) ** 2)
+
+
+def _reduced_chi2(d: np.ndarray, sig: np.ndarray, used: np.ndarray, mean: np.ndarray,
+                  cfg: CombinationConfig) -> float:
+    """The kept pairs' agreement over all their terms, clipped ones included (NaN for fewer
+    than two pairs): a kept pair whose terms were clipped one by one disagrees as much as
+    one dropped whole.  Each term is capped at ``clip_sigma``, so that a single wild term
+    still costs one term."""
     n_used = int(used.sum())
-    if n_used >= 2:
-        unc = unc * cfg.multi_pair_scale
-    z = mean + design
-    if not used.any():
-        z = np.full(N_TERMS, np.nan)
-        unc = np.full(N_TERMS, np.nan)
-    # The kept pairs' agreement over all their terms, clipped ones included: a kept pair
-    # whose terms were clipped one by one disagrees as much as one dropped whole (two bad
-    # pairs of four kept with a good one hid that way); each term is capped at clip_sigma,
-    # so that a single wild term still costs one term.
-    red = float("nan")
-    if n_used >= 2:
-        r_kept = (d[used] - mean[None, :]) / sig[used]
-        red = float(np.minimum(r_kept ** 2, cfg.clip_sigma ** 2).sum()
-                    / (N_TERMS * (n_used - 1)))
-    ambiguous = False
-    rejected = np.flatnonzero(finite & ~used)
-    if cfg.max_reduced_chi2 > 0 and n_used >= 2 and rejected.size >= n_used:
-        # A rival: the rejected pairs, combined on their own (the same rules, recursively
-        # on a smaller set), keep as many pairs that agree as well as the kept ones do.
-        rival = combine_pairs(d[rejected], q[rejected], config=cfg)
-        ambiguous = bool(rival.n_pairs >= n_used
-                         and rival.reduced_chi2 <= cfg.max_reduced_chi2)
-    consistent = not (cfg.max_reduced_chi2 > 0
-                      and (ambiguous or red > cfg.max_reduced_chi2))
-    return CombinedEstimate(z, unc, n_used, used, term_used, chi, red, fallback, ambiguous,
-                            consistent)
+    if n_used < 2:
+        return float("nan")
+    r_kept = (d[used] - mean[None, :]) / sig[used]
+    return float(np.minimum(r_kept ** 2, cfg.clip_sigma ** 2).sum() / (N_TERMS * (n_used - 1)))
+
+
+def _has_rival(d: np.ndarray, q: np.ndarray, rejected_mask: np.ndarray, n_used: int,
+               cfg: CombinationConfig) -> bool:
+    """The rejected pairs, combined on their own (the same rules, recursively on a smaller
+    set), keep as many pairs that agree as well as the kept ones do: two groups and no
+    majority.  Only evaluated when the consistency test is on."""
+    rejected = np.flatnonzero(rejected_mask)
+    if not (cfg.max_reduced_chi2 > 0 and n_used >= 2 and rejected.size >= n_used):
+        return False
+    rival = combine_pairs(d[rejected], q[rejected], config=cfg)
+    return bool(rival.n_pairs >= n_used and rival.reduced_chi2 <= cfg.max_reduced_chi2)
 
 
 def fit_noise_model(errors_nm: np.ndarray, noise_scale: np.ndarray,

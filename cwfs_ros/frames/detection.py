@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import numpy as np
 from scipy import fft as sfft
@@ -537,6 +537,56 @@ def _spans(gy: np.ndarray, cx: float, cy: float, radius2: float, x0: int, w: int
     return lo, np.where(d2 >= 0, np.maximum(hi, lo), lo)
 
 
+@dataclass(frozen=True)
+class _DiskSums:
+    """Row-wise running sums of a stamp's light and of its x moment: the sum over any disk
+    is then two look-ups per row of its column span (:func:`_spans`), so each disk costs
+    O(rows) rather than a pass over the stamp.  A pixel is inside a disk when its centre is
+    within the radius.
+
+    Attributes:
+        cs, csx: (rows, cols + 1) running sums of the light and of light times column.
+        gy: the rows' frame coordinates; ``x0`` the stamp's first frame column, ``w`` its
+            width.
+    """
+
+    cs: np.ndarray
+    csx: np.ndarray
+    gy: np.ndarray
+    x0: int
+    w: int
+
+    @classmethod
+    def of(cls, img: np.ndarray, x0: int, y0: int) -> _DiskSums:
+        h_, w_ = img.shape
+        cs = np.zeros((h_, w_ + 1))
+        csx = np.zeros((h_, w_ + 1))
+        np.cumsum(img, axis=1, out=cs[:, 1:])
+        np.cumsum(img * (_offsets(w_) + x0), axis=1, out=csx[:, 1:])
+        return cls(cs, csx, _offsets(h_) + y0, x0, w_)
+
+    def disk(self, xc: float, yc: float, radius2: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
+        """Column spans of a disk, its light per row, in all, and its pixel count."""
+        rows = np.arange(self.gy.size)
+        lo, hi = _spans(self.gy, xc, yc, radius2, self.x0, self.w)
+        s0 = self.cs[rows, hi] - self.cs[rows, lo]
+        return lo, hi, s0, float(s0.sum()), int((hi - lo).sum())
+
+    def centroid(self, cx: float, cy: float, radius2: float, passes: int = 3
+                 ) -> tuple[float, float]:
+        """The centroid of the light within the disk, re-centred on it ``passes - 1`` times
+        (left where it is if the disk holds no light)."""
+        rows = np.arange(self.gy.size)
+        for _ in range(passes):
+            lo, hi, s0, tot, _n = self.disk(cx, cy, radius2)
+            if not tot > 0:
+                break
+            cx = float((self.csx[rows, hi] - self.csx[rows, lo]).sum() / tot)
+            cy = float((s0 * self.gy).sum() / tot)
+        return cx, cy
+
+
 def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, r_in: float,
              cfg: DetectionConfig, stamp_px: int) -> dict:
     """Centroid, flux, S/N, peak pixel and shape fractions of one candidate (full res)."""
@@ -546,65 +596,49 @@ def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, 
     y0 = min(max(round(cand.y) - half, 0), max(ny - stamp_px, 0))
     w_, h_ = min(stamp_px, nx), min(stamp_px, ny)
     raw = frame[y0:y0 + h_, x0:x0 + w_].astype(np.float64)
-    img = raw - bg.level(x0, y0, w_, h_)
-    gx, gy = _offsets(w_) + x0, _offsets(h_) + y0
+    sums = _DiskSums.of(raw - bg.level(x0, y0, w_, h_), x0, y0)
     foot2 = (r_out + cfg.spill_px) ** 2
-    cx, cy = cand.x, cand.y
-    # Row-wise running sums of the light and of its x moment: the sum over any disk is then
-    # two look-ups per row of its column span (_spans), so each disk (the re-centred
-    # footprint, the hole, the ring outside) costs O(rows) rather than a pass over the
-    # stamp.  A pixel is inside a disk when its centre is within the radius.
-    cs = np.zeros((h_, w_ + 1))
-    csx = np.zeros((h_, w_ + 1))
-    np.cumsum(img, axis=1, out=cs[:, 1:])
-    np.cumsum(img * gx, axis=1, out=csx[:, 1:])
-    rows = np.arange(h_)
-
-    def disk(xc: float, yc: float, radius2: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
-        """Column spans of a disk, its light per row, in all, and its pixel count."""
-        lo, hi = _spans(gy, xc, yc, radius2, x0, w_)
-        s0 = cs[rows, hi] - cs[rows, lo]
-        return lo, hi, s0, float(s0.sum()), int((hi - lo).sum())
-
-    for _ in range(3):  # centroid inside the footprint, re-centred twice
-        lo, hi, s0, tot, _n = disk(cx, cy, foot2)
-        if not tot > 0:
-            break
-        cx = float((csx[rows, hi] - csx[rows, lo]).sum() / tot)
-        cy = float((s0 * gy).sum() / tot)
-    lo, hi, _s, flux, npix = disk(cx, cy, foot2)
+    cx, cy = sums.centroid(cand.x, cand.y, foot2)
+    lo, hi, _s, flux, npix = sums.disk(cx, cy, foot2)
     var = max(flux, 0.0) / cfg.gain_e_per_adu + npix * bg.noise ** 2
     snr = flux / np.sqrt(var) if var > 0 else 0.0
-    # Shape numbers, around the ring centre found by the matched filter rather than the
-    # centroid: a companion pulls the centroid towards itself, but not the filter's peak,
-    # which stays on the brighter ring; its light then shows up in that ring's hole and
-    # outside its footprint.  Signed sums, so that sky noise averages out.
-    pos = max(flux, 1e-300)
-    *_, hole_sum, hole_n = disk(cand.x, cand.y, (0.8 * r_in) ** 2)
-    *_, ring_sum, ring_n = disk(cand.x, cand.y, 2.0 * half * half)
-    *_, foot_sum, foot_n = disk(cand.x, cand.y, foot2)
-    # Outside the footprint but within the stamp's half-diagonal (empty if the footprint
-    # covers that disk).
-    out_sum, out_n = (ring_sum - foot_sum, ring_n - foot_n) if ring_n > foot_n else (0.0, 0)
-    hole_frac = hole_sum / pos if hole_n else 0.0
-    out_frac = out_sum / pos if out_n else 0.0
-    # Their noise (sky and the light's own Poisson noise), for noise-aware thresholds.  The
-    # light's variance in frame units is flux / gain, as in the S/N above.
-    g = cfg.gain_e_per_adu
-    hole_sig = np.sqrt(hole_n * bg.noise ** 2 + max(hole_frac * flux, 0.0) / g) / pos
-    out_sig = np.sqrt(out_n * bg.noise ** 2 + max(out_frac * flux, 0.0) / g) / pos
+    shape = _shape_fractions(sums, cand, flux, r_in, 2.0 * half * half, foot2, bg.noise,
+                             cfg.gain_e_per_adu)
     # The centroid's own noise: the flux-weighted scatter of pixel radii over sqrt(N_eff).
     cen_sig = np.sqrt(npix * bg.noise ** 2 * (r_out * r_out)
-                      + max(flux, 0.0) / g * r_out * r_out) / pos
+                      + max(flux, 0.0) / cfg.gain_e_per_adu * r_out * r_out) / max(flux, 1e-300)
     cols = _offsets(w_)
     inside = (cols >= lo[:, None]) & (cols < hi[:, None])
     peak_raw = float(raw[inside].max()) if npix else float("nan")
-    return dict(x=cx, y=cy, flux=flux, snr=float(snr), peak_value=peak_raw,
-                hole_fraction=hole_frac, outside_fraction=out_frac,
-                hole_sigma=float(hole_sig), outside_sigma=float(out_sig),
+    return dict(x=cx, y=cy, flux=flux, snr=float(snr), peak_value=peak_raw, **shape,
                 centre_offset=float(np.hypot(cx - cand.x, cy - cand.y)),
                 centre_sigma=float(cen_sig))
+
+
+def _shape_fractions(sums: _DiskSums, cand: _Candidate, flux: float, r_in: float,
+                     ring2: float, foot2: float, noise: float, gain: float
+                     ) -> dict[str, float]:
+    """The fractions of the flux in the central hole and outside the footprint (within the
+    stamp's half-diagonal, ``sqrt(ring2)``), and their noise.
+
+    They are taken around the ring centre found by the matched filter rather than the
+    centroid: a companion pulls the centroid towards itself, but not the filter's peak,
+    which stays on the brighter ring; its light then shows up in that ring's hole and
+    outside its footprint.  Signed sums, so that sky noise averages out.  The noise is the
+    sky's and the light's own Poisson noise (variance flux / gain in frame units).
+    """
+    pos = max(flux, 1e-300)
+    *_, hole_sum, hole_n = sums.disk(cand.x, cand.y, (0.8 * r_in) ** 2)
+    *_, ring_sum, ring_n = sums.disk(cand.x, cand.y, ring2)
+    *_, foot_sum, foot_n = sums.disk(cand.x, cand.y, foot2)
+    # Empty if the footprint covers the whole ring disk.
+    out_sum, out_n = (ring_sum - foot_sum, ring_n - foot_n) if ring_n > foot_n else (0.0, 0)
+    hole_frac = hole_sum / pos if hole_n else 0.0
+    out_frac = out_sum / pos if out_n else 0.0
+    hole_sig = np.sqrt(hole_n * noise ** 2 + max(hole_frac * flux, 0.0) / gain) / pos
+    out_sig = np.sqrt(out_n * noise ** 2 + max(out_frac * flux, 0.0) / gain) / pos
+    return dict(hole_fraction=hole_frac, outside_fraction=out_frac,
+                hole_sigma=float(hole_sig), outside_sigma=float(out_sig))
 
 
 def _check_frame(frame: np.ndarray, name: str) -> np.ndarray:
@@ -662,50 +696,8 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         ImageError subclasses for a frame that is not a finite 2-D numeric array.
     """
     cfg = config or DetectionConfig()
-    a = _check_frame(frame, name)
-    if min(a.shape) < 4 * cfg.bin_px:
-        raise ImageError(f"{name} frame {a.shape[1]}x{a.shape[0]} px is too small")
-    b = cfg.bin_px
-    binned = _binned(a, b)
-    _check_finite(a, binned, b, name)
-    if background is None:
-        bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
-    else:
-        bg, sub = background, binned - _sky_binned(background, binned.shape, b)
-    # A sky without noise (a simulation with neither sky nor read noise) would make the
-    # filter's float rounding sources by the dozen, and blend every real donut with them:
-    # the pixel noise is taken as at least one electron's shot noise.  Real sky and read
-    # noise are several electrons.
-    floor = 1.0 / cfg.gain_e_per_adu
-    if not bg.noise >= floor:
-        bg = replace(bg, noise=floor)
-    support = (outer_radius_px + cfg.spill_px) / b + 1.0
-    key = (round(outer_radius_px / b, 3), round(inner_radius_px / b, 3), round(support, 3))
-    tmpl, sidelobe = _template(*key)
-    resp = _correlate(sub, key)
-    noise_b = bg.noise * b  # binned-pixel sky noise
-    snr_map = resp / max(noise_b, 1e-12)
-    foot_b = (outer_radius_px + cfg.spill_px) / b
-
-    def explained(strong: tuple[int, int], weak: tuple[int, int]) -> float:
-        """S/N at ``weak`` of the light within the footprint of the donut at ``strong``
-        (binned px): the filter's response to that donut alone."""
-        # The template's window on the map, cut at the map's edges (slices, not index
-        # arrays: this runs for every side-lobe candidate, ~25 times a frame).
-        c = tmpl.shape[0] // 2
-        y0, y1 = max(weak[0] - c, 0), min(weak[0] + c + 1, sub.shape[0])
-        x0, x1 = max(weak[1] - c, 0), min(weak[1] + c + 1, sub.shape[1])
-        dy2 = (np.arange(y0, y1) - strong[0]) ** 2
-        dx2 = (np.arange(x0, x1) - strong[1]) ** 2
-        inside = dy2[:, None] + dx2[None, :] <= foot_b * foot_b
-        window = tmpl[y0 - weak[0] + c:y1 - weak[0] + c, x0 - weak[1] + c:x1 - weak[1] + c]
-        light = sub[y0:y1, x0:x1] * window
-        return float(light[inside].sum() / max(noise_b, 1e-12))
-
-    cands = _find_peaks(snr_map, cfg.detect_snr, 0.5 * outer_radius_px / b, sidelobe,
-                        cfg.sidelobe_margin, 2.0 * foot_b, cfg.max_candidates, b,
-                        explained, cfg.unexplained_fraction)
-    ny, nx = a.shape
+    a, bg, sub = _frame_and_sky(frame, cfg, name, background)
+    cands = _candidates(sub, bg.noise, outer_radius_px, inner_radius_px, cfg)
     half = stamp_px / 2.0
     blend_d = (cfg.blend_distance_px if cfg.blend_distance_px is not None
                else half * np.sqrt(2.0) + outer_radius_px + cfg.spill_px)
@@ -716,46 +708,117 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         d = np.hypot(*(pos - pos[i]).T)
         d[i] = np.inf
         near = float(d.min()) if d.size else float("inf")
-        reasons: list[str] = []
-        msgs: list[str] = []
-        # Edge: the stamp centred on the donut (as cut_stamp cuts it) must lie in the frame.
-        x0 = int(round(m["x"] - (stamp_px - 1) / 2.0))
-        y0 = int(round(m["y"] - (stamp_px - 1) / 2.0))
-        if x0 < 0 or y0 < 0 or x0 + stamp_px > nx or y0 + stamp_px > ny:
-            reasons.append(REASON_EDGE)
-            msgs.append(f"{name} donut at (col {m['x']:.0f}, row {m['y']:.0f}): its {stamp_px} px "
-                        f"stamp extends beyond the {nx}x{ny} frame")
-        if cfg.saturation_level is not None and m["peak_value"] >= cfg.saturation_level:
-            reasons.append(REASON_SATURATED)
-            msgs.append(f"{name} donut at (col {m['x']:.0f}, row {m['y']:.0f}) has a pixel of "
-                        f"{m['peak_value']:.4g} >= saturation level {cfg.saturation_level:.4g}")
-        k = cfg.shape_nsigma
-        lim_hole = cfg.max_hole_fraction + k * m["hole_sigma"]
-        lim_out = cfg.max_outside_fraction + k * m["outside_sigma"]
-        lim_cen = cfg.max_centre_offset_px + k * m["centre_sigma"]
-        why = ""
-        if near < blend_d:
-            why = f"another source {near:.0f} px away (< {blend_d:.0f} px)"
-        elif m["centre_offset"] > lim_cen:
-            why = (f"its flux centroid is {m['centre_offset']:.1f} px from its ring's centre "
-                   f"(limit {lim_cen:.1f} px): light from an overlapping donut")
-        elif m["hole_fraction"] > lim_hole or m["outside_fraction"] > lim_out:
-            why = (f"{m['hole_fraction']:.1%} of its flux in the central hole and "
-                   f"{m['outside_fraction']:.1%} outside the footprint (limits "
-                   f"{lim_hole:.1%}, {lim_out:.1%})")
-        if why:
-            reasons.append(REASON_BLENDED)
-            msgs.append(f"{name} donut at (col {m['x']:.0f}, row {m['y']:.0f}) is blended: {why}")
-        if not m["snr"] >= cfg.min_snr:
-            reasons.append(REASON_FAINT)
-            msgs.append(f"{name} donut at (col {m['x']:.0f}, row {m['y']:.0f}) is too faint: "
-                        f"S/N {m['snr']:.1f} < {cfg.min_snr:g}")
+        reasons, msgs = _judge(m, near, blend_d, a.shape, stamp_px, cfg, name)
         status = reasons[0] if reasons else "ok"
         out.append(DetectedDonut(m["x"], m["y"], m["flux"], m["snr"], m["peak_value"],
                                  c.detect_snr, m["hole_fraction"], m["outside_fraction"],
                                  status, tuple(reasons), msgs[0] if msgs else "", near,
                                  m["centre_offset"]))
     return out, bg
+
+
+def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
+                   background: Background | None
+                   ) -> tuple[np.ndarray, Background, np.ndarray]:
+    """(frame, sky model, binned sky-subtracted frame) of a checked frame.
+
+    The pixel noise is taken as at least one electron's shot noise: a sky without noise (a
+    simulation with neither sky nor read noise) would otherwise make the filter's float
+    rounding sources by the dozen, and blend every real donut with them.  Real sky and read
+    noise are several electrons.
+    """
+    a = _check_frame(frame, name)
+    if min(a.shape) < 4 * cfg.bin_px:
+        raise ImageError(f"{name} frame {a.shape[1]}x{a.shape[0]} px is too small")
+    b = cfg.bin_px
+    binned = _binned(a, b)
+    _check_finite(a, binned, b, name)
+    if background is None:
+        bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
+    else:
+        bg, sub = background, binned - _sky_binned(background, binned.shape, b)
+    floor = 1.0 / cfg.gain_e_per_adu
+    if not bg.noise >= floor:
+        bg = replace(bg, noise=floor)
+    return a, bg, sub
+
+
+def _candidates(sub: np.ndarray, noise: float, outer_radius_px: float,
+                inner_radius_px: float, cfg: DetectionConfig) -> list[_Candidate]:
+    """The matched filter's peaks on the binned sky-subtracted frame (:func:`_find_peaks`),
+    brightest first; a side-lobe peak is kept only if the brighter donut's light does not
+    explain it (:func:`_explained_snr`)."""
+    b = cfg.bin_px
+    support = (outer_radius_px + cfg.spill_px) / b + 1.0
+    key = (round(outer_radius_px / b, 3), round(inner_radius_px / b, 3), round(support, 3))
+    tmpl, sidelobe = _template(*key)
+    resp = _correlate(sub, key)
+    noise_b = noise * b  # binned-pixel sky noise
+    snr_map = resp / max(noise_b, 1e-12)
+    foot_b = (outer_radius_px + cfg.spill_px) / b
+    explained = partial(_explained_snr, sub, tmpl, foot_b, noise_b)
+    return _find_peaks(snr_map, cfg.detect_snr, 0.5 * outer_radius_px / b, sidelobe,
+                       cfg.sidelobe_margin, 2.0 * foot_b, cfg.max_candidates, b,
+                       explained, cfg.unexplained_fraction)
+
+
+def _explained_snr(sub: np.ndarray, tmpl: np.ndarray, foot_b: float, noise_b: float,
+                   strong: tuple[int, int], weak: tuple[int, int]) -> float:
+    """S/N at ``weak`` of the light within the footprint (radius ``foot_b``) of the donut at
+    ``strong`` (binned px): the filter's response to that donut alone."""
+    # The template's window on the map, cut at the map's edges (slices, not index arrays:
+    # this runs for every side-lobe candidate, ~25 times a frame).
+    c = tmpl.shape[0] // 2
+    y0, y1 = max(weak[0] - c, 0), min(weak[0] + c + 1, sub.shape[0])
+    x0, x1 = max(weak[1] - c, 0), min(weak[1] + c + 1, sub.shape[1])
+    dy2 = (np.arange(y0, y1) - strong[0]) ** 2
+    dx2 = (np.arange(x0, x1) - strong[1]) ** 2
+    inside = dy2[:, None] + dx2[None, :] <= foot_b * foot_b
+    window = tmpl[y0 - weak[0] + c:y1 - weak[0] + c, x0 - weak[1] + c:x1 - weak[1] + c]
+    light = sub[y0:y1, x0:x1] * window
+    return float(light[inside].sum() / max(noise_b, 1e-12))
+
+
+def _judge(m: dict, near: float, blend_d: float, shape: tuple[int, int], stamp_px: int,
+           cfg: DetectionConfig, name: str) -> tuple[list[str], list[str]]:
+    """(reasons, messages) for rejecting a measured donut, in order of precedence: its stamp
+    cut by the frame edge, a saturated pixel, a blend (a neighbour within ``blend_d``, or
+    shape numbers beyond their noise-aware limits), too faint.  Empty if it is usable."""
+    ny, nx = shape
+    at = f"{name} donut at (col {m['x']:.0f}, row {m['y']:.0f})"
+    reasons: list[str] = []
+    msgs: list[str] = []
+    # Edge: the stamp centred on the donut (as cut_stamp cuts it) must lie in the frame.
+    x0 = int(round(m["x"] - (stamp_px - 1) / 2.0))
+    y0 = int(round(m["y"] - (stamp_px - 1) / 2.0))
+    if x0 < 0 or y0 < 0 or x0 + stamp_px > nx or y0 + stamp_px > ny:
+        reasons.append(REASON_EDGE)
+        msgs.append(f"{at}: its {stamp_px} px stamp extends beyond the {nx}x{ny} frame")
+    if cfg.saturation_level is not None and m["peak_value"] >= cfg.saturation_level:
+        reasons.append(REASON_SATURATED)
+        msgs.append(f"{at} has a pixel of {m['peak_value']:.4g} >= saturation level "
+                    f"{cfg.saturation_level:.4g}")
+    k = cfg.shape_nsigma
+    lim_hole = cfg.max_hole_fraction + k * m["hole_sigma"]
+    lim_out = cfg.max_outside_fraction + k * m["outside_sigma"]
+    lim_cen = cfg.max_centre_offset_px + k * m["centre_sigma"]
+    why = ""
+    if near < blend_d:
+        why = f"another source {near:.0f} px away (< {blend_d:.0f} px)"
+    elif m["centre_offset"] > lim_cen:
+        why = (f"its flux centroid is {m['centre_offset']:.1f} px from its ring's centre "
+               f"(limit {lim_cen:.1f} px): light from an overlapping donut")
+    elif m["hole_fraction"] > lim_hole or m["outside_fraction"] > lim_out:
+        why = (f"{m['hole_fraction']:.1%} of its flux in the central hole and "
+               f"{m['outside_fraction']:.1%} outside the footprint (limits "
+               f"{lim_hole:.1%}, {lim_out:.1%})")
+    if why:
+        reasons.append(REASON_BLENDED)
+        msgs.append(f"{at} is blended: {why}")
+    if not m["snr"] >= cfg.min_snr:
+        reasons.append(REASON_FAINT)
+        msgs.append(f"{at} is too faint: S/N {m['snr']:.1f} < {cfg.min_snr:g}")
+    return reasons, msgs
 
 
 def cut_stamp(frame: np.ndarray, x: float, y: float, stamp_px: int,

@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -224,6 +225,19 @@ def field_model(inst: Instrument, band: str, field_deg: tuple[float, float],
     g = np.linspace(-1.0, 1.0, 5)
     tx, ty = np.meshgrid(field_deg[0] + g * hx, field_deg[1] + g * hy)
     tx, ty = tx.ravel(), ty.ravel()
+    coeffs, scale, fit_rms = _fit_pixel_to_field(optic, wl_m, pix_m, field_deg, tx, ty)
+    cen = _centroid_offset_px(optic, wl_m, pix_m, field_deg)
+    coeffs.setflags(write=False)
+    return FieldModel((float(field_deg[0]), float(field_deg[1])), ref, coeffs, cen, scale,
+                      fit_rms)
+
+
+def _fit_pixel_to_field(optic: Any, wl_m: float, pix_m: float,
+                        field_deg: tuple[float, float], tx: np.ndarray, ty: np.ndarray
+                        ) -> tuple[np.ndarray, float, float]:
+    """(coefficients, arcsec per px, fit rms px) of the cubic from pixel offsets (in units of
+    1000 px) to field offsets (deg), fitted to the chief rays of the fields ``tx, ty`` traced
+    through the defocused design, relative to the reference field's chief ray."""
     zero = np.zeros(1)
     c0 = _trace(optic, zero, zero, wl_m, field_deg[0], field_deg[1])
     x0, y0 = float(c0.x[0]), float(c0.y[0])
@@ -240,8 +254,15 @@ def field_model(inst: Instrument, band: str, field_deg: tuple[float, float],
     resid_deg = design @ coeffs.T - targets
     jac = coeffs[:, 1:3] / 1000.0  # deg per px at the reference
     scale = float(np.sqrt(abs(np.linalg.det(jac)))) * 3600.0
-    fit_rms = float(np.sqrt(np.mean(resid_deg ** 2)) * 3600.0 / scale)
-    # Centroid offset: uniform rays over the pupil annulus, vignetting by the trace.
+    return coeffs, scale, float(np.sqrt(np.mean(resid_deg ** 2)) * 3600.0 / scale)
+
+
+def _centroid_offset_px(optic: Any, wl_m: float, pix_m: float,
+                        field_deg: tuple[float, float]) -> tuple[float, float]:
+    """(dx, dy) px of the donut's flux centroid from its chief ray: a 64 x 64 grid of rays
+    over the pupil annulus, vignetted as the trace says (§3.3: off axis the vignetted donut
+    is not centred on the chief ray)."""
+    zero = np.zeros(1)
     r_out = 0.5 * optic.pupilSize
     eps = optic.pupilObscuration
     n = 64
@@ -252,11 +273,8 @@ def field_model(inst: Instrument, band: str, field_deg: tuple[float, float],
     o = _trace(optic, gx[keep], gy[keep], wl_m, field_deg[0], field_deg[1])
     ok = ~(o.vignetted | o.failed)
     chief = _trace(optic, zero, zero, wl_m, field_deg[0], field_deg[1])
-    cen = (float((o.x[ok].mean() - chief.x[0]) / pix_m),
-           float((o.y[ok].mean() - chief.y[0]) / pix_m))
-    coeffs.setflags(write=False)
-    return FieldModel((float(field_deg[0]), float(field_deg[1])), ref, coeffs, cen, scale,
-                      fit_rms)
+    return (float((o.x[ok].mean() - chief.x[0]) / pix_m),
+            float((o.y[ok].mean() - chief.y[0]) / pix_m))
 
 
 def half_chip_model(half: HalfChip, instrument: str | Instrument = "lsst", band: str = "r",

@@ -25,7 +25,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -302,10 +302,9 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
     needs, ~4 ms a pair).  Until then every pair is checked, so exchanged frames are refused
     pair by pair, and an inconclusive pair confirms nothing.
     """
-    from cwfs_ros.wfs.estimator import estimate_wavefront, load_algorithm
+    from cwfs_ros.wfs.estimator import load_algorithm
 
     out = []
-    nan = np.full(len(_NOLL), np.nan)
     kwargs = settings.estimator_kwargs()
     if warm_start is None:
         warm_start = load_algorithm(settings.solver).warm_start
@@ -313,60 +312,85 @@ def estimate_pairs(pairs: list[tuple[StarStamp, StarStamp]],
     start = None  # the first good pair's departure: the later pairs' warm start
     for k, (si, se) in enumerate(pairs):
         t0 = time.perf_counter()
-        mid = (0.5 * (si.field_deg[0] + se.field_deg[0]),
-               0.5 * (si.field_deg[1] + se.field_deg[1]))
-        common = dict(index=k, intra_xy=(si.donut.x, si.donut.y),
-                      extra_xy=(se.donut.x, se.donut.y), field_intra_deg=si.field_deg,
-                      field_extra_deg=se.field_deg, field_mid_deg=mid,
-                      snr_intra=si.donut.snr, snr_extra=se.donut.snr,
-                      noise_scale=pair_noise_scale(si.donut.snr, se.donut.snr))
+        common = _pair_identity(k, si, se)
         try:
-            fields = dict(field_intra_deg=si.field_deg, field_extra_deg=se.field_deg)
-            r = estimate_wavefront(si.stamp, se.stamp, initial_nm=start, **fields, **kwargs)
-            common["warm_start"] = start is not None
-            if start is not None and r.caustic:
-                # The warm start folded the compensation: the paper's cold start decides.
-                r = estimate_wavefront(si.stamp, se.stamp, **fields, **kwargs)
-                common["warm_start"] = False
+            r = _estimate_pair(si, se, start, kwargs, common)
         except Exception as exc:  # noqa: BLE001 - one pair's failure drops that pair only
-            if isinstance(exc, CwfsError):
-                tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
-                                                         else "bad_image"))
-                text = str(exc)
-            else:  # a defect or a library's error: named, and the other pairs still count
-                tag, text = "internal_error", f"{type(exc).__name__}: {exc}"
-            out.append(PairResult(**common, status=tag, message=text, zernikes_nm=nan,
-                                  intrinsic_nm=nan,
-                                  compute_ms=(time.perf_counter() - t0) * 1e3))
+            out.append(_failed_pair(common, exc, (time.perf_counter() - t0) * 1e3))
             continue
         ms = (time.perf_counter() - t0) * 1e3
         common["swap_check"] = "skipped" if confirmed else r.swap_check
         if r.swap_check == "confirmed":
             confirmed = True
             kwargs = {**kwargs, "swap_check": False}
-        z = np.asarray(r.zernikes_nm, dtype=np.float64)
-        if r.caustic or r.iterations < 1:
-            # The compensation folded (§2.1): the estimator keeps its last good iterate, but
-            # that is a partial solution; it must not pull the combination.
-            out.append(PairResult(**common, status="caustic",
-                                  message=f"the compensation folded into caustic after "
-                                          f"{r.iterations} outer iteration(s)",
-                                  zernikes_nm=z, intrinsic_nm=np.asarray(r.intrinsic_nm),
-                                  iterations=r.iterations, compute_ms=ms))
-            continue
-        if not np.all(np.isfinite(z)):
-            out.append(PairResult(**common, status="non_finite_estimate",
-                                  message="the estimator returned NaN/Inf Zernikes",
-                                  zernikes_nm=z, intrinsic_nm=np.asarray(r.intrinsic_nm),
-                                  iterations=r.iterations, compute_ms=ms))
-            continue
-        out.append(PairResult(**common, status="ok", message="", zernikes_nm=z,
-                              intrinsic_nm=np.asarray(r.intrinsic_nm, dtype=np.float64),
-                              iterations=r.iterations, compute_ms=ms,
-                              converged=bool(r.converged)))
-        if start is None and warm_start:
+        out.append(_estimated_pair(common, r, ms))
+        if out[-1].status == "ok" and start is None and warm_start:
             start = r.departure_all_nm
     return out
+
+
+def _pair_identity(k: int, si: StarStamp, se: StarStamp) -> dict[str, Any]:
+    """The fields of a :class:`PairResult` that describe the pair itself: rank, donut
+    positions, the stars' fields and their mid-point, S/N and noise scale."""
+    mid = (0.5 * (si.field_deg[0] + se.field_deg[0]),
+           0.5 * (si.field_deg[1] + se.field_deg[1]))
+    return dict(index=k, intra_xy=(si.donut.x, si.donut.y),
+                extra_xy=(se.donut.x, se.donut.y), field_intra_deg=si.field_deg,
+                field_extra_deg=se.field_deg, field_mid_deg=mid,
+                snr_intra=si.donut.snr, snr_extra=se.donut.snr,
+                noise_scale=pair_noise_scale(si.donut.snr, se.donut.snr))
+
+
+def _estimate_pair(si: StarStamp, se: StarStamp, start: np.ndarray | None,
+                   kwargs: dict[str, Any], common: dict[str, Any]) -> Any:
+    """The estimate of one pair, each star at its own field (§3.3-3.4), from ``start`` if
+    given.  A warm start that folds the compensation into caustic is redone from zero: the
+    paper's cold start decides.  ``common["warm_start"]`` records which start the result
+    (or the error of the redo) comes from."""
+    from cwfs_ros.wfs.estimator import estimate_wavefront
+
+    fields = dict(field_intra_deg=si.field_deg, field_extra_deg=se.field_deg)
+    r = estimate_wavefront(si.stamp, se.stamp, initial_nm=start, **fields, **kwargs)
+    common["warm_start"] = start is not None
+    if start is not None and r.caustic:
+        r = estimate_wavefront(si.stamp, se.stamp, **fields, **kwargs)
+        common["warm_start"] = False
+    return r
+
+
+def _failed_pair(common: dict[str, Any], exc: Exception, ms: float) -> PairResult:
+    """A pair whose estimate raised: the error's reason as its status (``internal_error``
+    for a defect or a library's error, named so that the other pairs still count)."""
+    if isinstance(exc, CwfsError):
+        tag = str(getattr(exc, "reason", "") or ("config" if isinstance(exc, ConfigError)
+                                                 else "bad_image"))
+        text = str(exc)
+    else:
+        tag, text = "internal_error", f"{type(exc).__name__}: {exc}"
+    nan = np.full(len(_NOLL), np.nan)
+    return PairResult(**common, status=tag, message=text, zernikes_nm=nan,
+                      intrinsic_nm=nan, compute_ms=ms)
+
+
+def _estimated_pair(common: dict[str, Any], r: Any, ms: float) -> PairResult:
+    """A pair's result from its estimate: ``ok``, or ``caustic`` (§2.1: the estimator keeps
+    its last good iterate, but that is a partial solution that must not pull the
+    combination), or ``non_finite_estimate``."""
+    z = np.asarray(r.zernikes_nm, dtype=np.float64)
+    if r.caustic or r.iterations < 1:
+        return PairResult(**common, status="caustic",
+                          message=f"the compensation folded into caustic after "
+                                  f"{r.iterations} outer iteration(s)",
+                          zernikes_nm=z, intrinsic_nm=np.asarray(r.intrinsic_nm),
+                          iterations=r.iterations, compute_ms=ms)
+    if not np.all(np.isfinite(z)):
+        return PairResult(**common, status="non_finite_estimate",
+                          message="the estimator returned NaN/Inf Zernikes",
+                          zernikes_nm=z, intrinsic_nm=np.asarray(r.intrinsic_nm),
+                          iterations=r.iterations, compute_ms=ms)
+    return PairResult(**common, status="ok", message="", zernikes_nm=z,
+                      intrinsic_nm=np.asarray(r.intrinsic_nm, dtype=np.float64),
+                      iterations=r.iterations, compute_ms=ms, converged=bool(r.converged))
 
 
 @dataclass(frozen=True)
@@ -507,39 +531,18 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
                        centres_deg=(hi.field_deg, he.field_deg))
     results = estimate_pairs(pairs, settings)
     t2 = time.perf_counter()
-    ok = [p for p in results if p.status == "ok"]
-    ref = hi.mid_deg
-    dets = {"intra": tuple(det_in), "extra": tuple(det_ex)}
-
-    def done(valid: bool, reason: str, msg: str, comb: CombinedEstimate | None,
-             res: list[PairResult]) -> CornerFrameResult:
-        t3 = time.perf_counter()
-        nan = np.full(len(_NOLL), np.nan)
-        status = "ok" if valid else (msg if msg.startswith(reason + ":") else
-                                     f"{reason}: {msg}")
-        return CornerFrameResult(
-            corner, int(stamp_ns), valid, status, "" if valid else reason,
-            comb.zernikes_nm if comb is not None and valid else nan,
-            comb.uncertainty_nm if comb is not None and valid else nan.copy(),
-            comb.n_pairs if comb is not None else 0, ref, tuple(res), dets,
-            {"detect": (t1 - t0) * 1e3, "estimate": (t2 - t1) * 1e3,
-             "combine": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3},
-            settings.solver, os.getpid(),
-            reduced_chi2=comb.reduced_chi2 if comb is not None else float("nan"))
-
+    done = partial(_corner_result, corner=corner, stamp_ns=stamp_ns, field_deg=hi.mid_deg,
+                   detections={"intra": tuple(det_in), "extra": tuple(det_ex)},
+                   solver=settings.solver, times_s=(t0, t1, t2))
     if not st_in or not st_ex:
-        empty = [(s, dets) for s, st, dets in (("intra", st_in, det_in),
-                                                ("extra", st_ex, det_ex)) if not st]
-        detail = "; ".join(f"{s}: {sum(not d.ok for d in dets)} detected and rejected"
-                           for s, dets in empty)
-        which = " and ".join(s for s, _ in empty)
-        return done(False, "no_donuts", f"no usable donut on the {which} half ({detail})",
-                    None, results)
+        return done(False, "no_donuts", _no_donuts_message(
+            {"intra": (st_in, det_in), "extra": (st_ex, det_ex)}), None, results)
+    ok = [p for p in results if p.status == "ok"]
     if not ok:
         tags = sorted({p.status for p in results})
         return done(False, "no_valid_pair", f"all {len(results)} pair(s) failed "
                     f"({', '.join(tags)})", None, results)
-    design_ref = _design_at(settings.instrument, settings.band, ref)
+    design_ref = _design_at(settings.instrument, settings.band, hi.mid_deg)
     comb = combine_pairs(np.array([p.departure_nm for p in ok]),
                          np.array([p.noise_scale for p in ok]), design_ref_nm=design_ref,
                          config=cfg.combination)
@@ -549,17 +552,56 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
         # Not a correction to act on: the stars of one sensor see nearly the same departure,
         # so pairs that disagree far beyond their noise mean some are bad, and with two bad
         # of four the outlier rejection cannot tell which (docs/accuracy.md, Frames).
-        kept = ", ".join(str(p.index) for p in res if p.used)
-        if comb.ambiguous:
-            why = (f"the star pairs fall in two groups that each agree and not with each "
-                   f"other ({comb.n_pairs} kept: {kept}), and no majority to choose")
-        else:
-            why = (f"the {comb.n_pairs} star pairs kept ({kept}) disagree: their scatter is "
-                   f"{np.sqrt(comb.reduced_chi2):.1f}x their noise model (reduced chi^2 "
-                   f"{comb.reduced_chi2:.1f} > {cfg.combination.max_reduced_chi2:g})")
-        return done(False, "inconsistent_pairs", why, comb, res)
+        return done(False, "inconsistent_pairs", _inconsistency_message(comb, res, cfg),
+                    comb, res)
     return done(comb.n_pairs > 0, "no_valid_pair", "every pair was rejected as an outlier",
                 comb, res)
+
+
+def _corner_result(valid: bool, reason: str, msg: str, comb: CombinedEstimate | None,
+                   res: list[PairResult], *, corner: str, stamp_ns: int,
+                   field_deg: tuple[float, float],
+                   detections: dict[str, tuple[DetectedDonut, ...]], solver: str,
+                   times_s: tuple[float, float, float]) -> CornerFrameResult:
+    """The corner's result: the combination's Zernikes and uncertainties when ``valid``
+    (NaN otherwise), the status ``"<reason>: <msg>"`` when not, and the stage timings from
+    ``times_s`` (start, stamps selected, pairs estimated) to now."""
+    t0, t1, t2 = times_s
+    t3 = time.perf_counter()
+    nan = np.full(len(_NOLL), np.nan)
+    status = "ok" if valid else (msg if msg.startswith(reason + ":") else f"{reason}: {msg}")
+    return CornerFrameResult(
+        corner, int(stamp_ns), valid, status, "" if valid else reason,
+        comb.zernikes_nm if comb is not None and valid else nan,
+        comb.uncertainty_nm if comb is not None and valid else nan.copy(),
+        comb.n_pairs if comb is not None else 0, field_deg, tuple(res), detections,
+        {"detect": (t1 - t0) * 1e3, "estimate": (t2 - t1) * 1e3,
+         "combine": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3},
+        solver, os.getpid(),
+        reduced_chi2=comb.reduced_chi2 if comb is not None else float("nan"))
+
+
+def _no_donuts_message(sides: dict[str, tuple[list[StarStamp], list[DetectedDonut]]]
+                       ) -> str:
+    """Which half (or both) has no usable donut, and how many it detected and rejected."""
+    empty = [(s, dets) for s, (st, dets) in sides.items() if not st]
+    detail = "; ".join(f"{s}: {sum(not d.ok for d in dets)} detected and rejected"
+                       for s, dets in empty)
+    which = " and ".join(s for s, _ in empty)
+    return f"no usable donut on the {which} half ({detail})"
+
+
+def _inconsistency_message(comb: CombinedEstimate, res: list[PairResult],
+                           cfg: SelectionConfig) -> str:
+    """Why the kept pairs do not make a corner result: two groups and no majority
+    (:attr:`.combination.CombinedEstimate.ambiguous`), or a scatter beyond the noise model."""
+    kept = ", ".join(str(p.index) for p in res if p.used)
+    if comb.ambiguous:
+        return (f"the star pairs fall in two groups that each agree and not with each "
+                f"other ({comb.n_pairs} kept: {kept}), and no majority to choose")
+    return (f"the {comb.n_pairs} star pairs kept ({kept}) disagree: their scatter is "
+            f"{np.sqrt(comb.reduced_chi2):.1f}x their noise model (reduced chi^2 "
+            f"{comb.reduced_chi2:.1f} > {cfg.combination.max_reduced_chi2:g})")
 
 
 def _with_used(p: PairResult, used: bool) -> PairResult:

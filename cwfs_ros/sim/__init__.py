@@ -12,6 +12,7 @@ not by a pupil-to-image mapping, so closed-loop tests are not an inverse crime.
 
 from cwfs_ros.sim.render import (
     CornerSensor,
+    RenderSettings,
     TracedRays,
     camera_zernikes_nm,
     corner_fields,
@@ -43,6 +44,7 @@ __all__ = [
     "N_DOF",
     "TS_OFC_FLIPPED_DOF",
     "CornerSensor",
+    "RenderSettings",
     "TracedRays",
     "bending_zernikes",
     "camera_zernikes_nm",

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import batoid
 import numpy as np
 
-from cwfs_ros.sim.render import render_donut
+from cwfs_ros.sim.render import RenderSettings, render_donut
 from cwfs_ros.sim.telescope import defocused, load_lsst, perturbed_telescope
 
 __all__ = ["StarSpec", "InjectedStar", "SimulatedFrame", "star_field_deg", "random_stars",
@@ -154,53 +154,73 @@ def random_stars(rng: np.random.Generator, shape_px: tuple[int, int], *,
         shape_px: (rows, cols).
         n_good: number of good stars, or an inclusive (min, max) range.
     """
-    rows, cols = shape_px
     r = donut_outer_radius_px(detector_offset_mm)
     sep = stamp_px / 2 + 2 * r + 40.0
     margin = stamp_px / 2 + 12.0
     n = n_good if isinstance(n_good, int) else int(rng.integers(n_good[0], n_good[1] + 1))
-    placed: list[StarSpec] = []
+    layout = _Layout(rng, shape_px, max_tries)
+    lo, hi = np.log(flux_range[0]), np.log(flux_range[1])
+    if blend:
+        x, y = layout.spot(sep + 1.5 * r, margin + 1.5 * r)
+        phi = rng.uniform(0, 2 * np.pi)
+        s = rng.uniform(0.5, 1.5) * r
+        layout.placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi))), ("blend",)))
+        layout.placed.append(StarSpec(x + s * np.cos(phi), y + s * np.sin(phi),
+                                      float(np.exp(rng.uniform(lo, hi))), ("blend",)))
+    if edge:
+        layout.edge_star(0.3 * r, margin, sep, (lo, hi))
+    if saturated:
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(saturated_flux or 20 * flux_range[1]),
+                                      ("saturated",)))
+    if faint:
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(faint_flux), ("faint",)))
+    for _ in range(n):
+        x, y = layout.spot(sep, margin)
+        layout.placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi)))))
+    return layout.placed
 
-    def free(x: float, y: float, d: float) -> bool:
-        return all(np.hypot(x - s.x, y - s.y) >= d for s in placed)
 
-    def spot(d: float, m: float) -> tuple[float, float]:
-        for _ in range(max_tries):
-            x, y = rng.uniform(m, cols - 1 - m), rng.uniform(m, rows - 1 - m)
-            if free(x, y, d):
+@dataclass
+class _Layout:
+    """Stars placed so far on a frame of ``shape_px`` (rows, cols), and where a new one fits."""
+
+    rng: np.random.Generator
+    shape_px: tuple[int, int]
+    max_tries: int
+    placed: list[StarSpec] = field(default_factory=list)
+
+    def free(self, x: float, y: float, d: float) -> bool:
+        """No star placed within ``d`` px of (x, y)."""
+        return all(np.hypot(x - s.x, y - s.y) >= d for s in self.placed)
+
+    def spot(self, d: float, m: float) -> tuple[float, float]:
+        """A uniform random position at least ``m`` px inside the frame and ``d`` px from
+        every star placed; ValueError after ``max_tries`` misses."""
+        rows, cols = self.shape_px
+        for _ in range(self.max_tries):
+            x, y = self.rng.uniform(m, cols - 1 - m), self.rng.uniform(m, rows - 1 - m)
+            if self.free(x, y, d):
                 return float(x), float(y)
         raise ValueError(f"cannot place a star {d:.0f} px from the others in a "
                          f"{cols}x{rows} frame; use fewer stars or a larger frame")
 
-    lo, hi = np.log(flux_range[0]), np.log(flux_range[1])
-    if blend:
-        x, y = spot(sep + 1.5 * r, margin + 1.5 * r)
-        phi = rng.uniform(0, 2 * np.pi)
-        s = rng.uniform(0.5, 1.5) * r
-        placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi))), ("blend",)))
-        placed.append(StarSpec(x + s * np.cos(phi), y + s * np.sin(phi),
-                               float(np.exp(rng.uniform(lo, hi))), ("blend",)))
-    if edge:
-        side = int(rng.integers(4))
-        for _ in range(max_tries):
-            t = rng.uniform(margin, (cols if side < 2 else rows) - 1 - margin)
-            e = 0.3 * r
+    def edge_star(self, inset: float, margin: float, sep: float,
+                  log_flux: tuple[float, float]) -> None:
+        """Place a star ``inset`` px inside a random edge, ``sep`` px from the others (none
+        if no such spot turns up in ``max_tries``)."""
+        rows, cols = self.shape_px
+        side = int(self.rng.integers(4))
+        for _ in range(self.max_tries):
+            t = self.rng.uniform(margin, (cols if side < 2 else rows) - 1 - margin)
+            e = inset
             x, y = {0: (t, e), 1: (t, rows - 1 - e), 2: (e, t), 3: (cols - 1 - e, t)}[side]
-            if free(x, y, sep):
-                placed.append(StarSpec(float(x), float(y), float(np.exp(rng.uniform(lo, hi))),
-                                       ("edge",)))
-                break
-    if saturated:
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(saturated_flux or 20 * flux_range[1]),
-                               ("saturated",)))
-    if faint:
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(faint_flux), ("faint",)))
-    for _ in range(n):
-        x, y = spot(sep, margin)
-        placed.append(StarSpec(x, y, float(np.exp(rng.uniform(lo, hi)))))
-    return placed
+            if self.free(x, y, sep):
+                self.placed.append(StarSpec(float(x), float(y),
+                                            float(np.exp(self.rng.uniform(*log_flux))),
+                                            ("edge",)))
+                return
 
 
 def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
@@ -230,7 +250,7 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
         pixel_um: pixel pitch.
         seeing_fwhm_arcsec: FWHM of a Gaussian atmospheric blur of every star (each photon
             is displaced at random, as in :func:`~cwfs_ros.sim.render.render_donut`); 0 =
-            none, which leaves the frame's random stream as it was without seeing.
+            none, which draws no seeing offsets (the random stream of a frame without seeing).
         rng: random generator.
         rotator_angle_deg: camera rotator angle [deg]; ``telescope`` must be built with the
             same angle. ``field_ref_deg`` is then the camera-frame (nominal) field of the
@@ -243,34 +263,18 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     rows, cols = shape_px
     ref = reference_px if reference_px is not None else ((cols - 1) / 2.0, (rows - 1) / 2.0)
     img = np.zeros((rows, cols), dtype=np.float64)
-    design = load_lsst(band)
-    ref_field = field_ref_deg
-    if rotator_angle_deg:
-        from cwfs_ros.ofc.rotation import telescope_field_deg
-
-        design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
-        g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]
-        ref_field = (float(g[0]), float(g[1]))
+    design, ref_field = _design_frame(band, field_ref_deg, rotator_angle_deg)
+    settings = RenderSettings(wavelength_nm=wavelength_nm, npix=render_px, pixel_um=pixel_um,
+                              centre="chief", poisson=False,
+                              seeing_fwhm_arcsec=seeing_fwhm_arcsec)
     truth = []
-    c = (render_px - 1) / 2.0
     for s in stars:
         fld = star_field_deg(s.x, s.y, field_ref_deg=ref_field, reference_px=ref,
                              detector_offset_mm=detector_offset_mm, band=band,
                              wavelength_nm=wavelength_nm, pixel_um=pixel_um, optic=design)
         n = int(rng.poisson(s.flux))
-        # Stamp origin so that the chief ray lands at (s.x, s.y): render_donut puts it at
-        # (render_px - 1) / 2 + offset in pixel-centre coordinates.
-        x0, y0 = int(np.floor(s.x - c)), int(np.floor(s.y - c))
-        off = (s.x - c - x0, s.y - c - y0)
         if n > 0:
-            st = render_donut(telescope, fld, detector_offset_mm, wavelength_nm=wavelength_nm,
-                              npix=render_px, pixel_um=pixel_um, n_photons=n, n_rays=n,
-                              offset_px=off, rng=rng, centre="chief", poisson=False,
-                              seeing_fwhm_arcsec=seeing_fwhm_arcsec)
-            ya, yb = max(y0, 0), min(y0 + render_px, rows)
-            xa, xb = max(x0, 0), min(x0 + render_px, cols)
-            if ya < yb and xa < xb:
-                img[ya:yb, xa:xb] += st[ya - y0:yb - y0, xa - x0:xb - x0]
+            _add_star(img, telescope, fld, detector_offset_mm, (s.x, s.y), n, settings, rng)
         truth.append(InjectedStar(float(s.x), float(s.y), fld, float(s.flux), n,
                                   tuple(s.flags)))
     if sky_per_pixel > 0:
@@ -282,3 +286,37 @@ def render_frame(telescope: batoid.Optic, stars: Sequence[StarSpec], *,
     return SimulatedFrame(img.astype(np.float32), tuple(truth), float(sky_per_pixel),
                           (float(field_ref_deg[0]), float(field_ref_deg[1])),
                           (float(ref[0]), float(ref[1])), float(detector_offset_mm))
+
+
+def _design_frame(band: str, field_ref_deg: tuple[float, float], rotator_angle_deg: float
+                  ) -> tuple[batoid.Optic, tuple[float, float]]:
+    """(design telescope, reference field) through which star fields are found: the
+    nominal design, or with a rotated camera the rotated design and the reference field in
+    the telescope's frame."""
+    if not rotator_angle_deg:
+        return load_lsst(band), field_ref_deg
+    from cwfs_ros.ofc.rotation import telescope_field_deg
+
+    design = perturbed_telescope(None, band, rotator_angle_deg=rotator_angle_deg)
+    g = telescope_field_deg(field_ref_deg, np.deg2rad(rotator_angle_deg))[0]
+    return design, (float(g[0]), float(g[1]))
+
+
+def _add_star(img: np.ndarray, telescope: batoid.Optic, field_deg: tuple[float, float],
+              detector_offset_mm: float, xy_px: tuple[float, float], n_photons: int,
+              settings: RenderSettings, rng: np.random.Generator) -> None:
+    """Add one star's ``n_photons`` (one ray each, noise-free binning) to ``img``, its chief
+    ray at pixel ``xy_px`` (col, row; pixel-centre convention), clipped at the frame."""
+    rows, cols = img.shape
+    render_px = settings.npix
+    # Stamp origin so that the chief ray lands at xy_px: render_donut puts it at
+    # (render_px - 1) / 2 + offset in pixel-centre coordinates.
+    c = (render_px - 1) / 2.0
+    x0, y0 = int(np.floor(xy_px[0] - c)), int(np.floor(xy_px[1] - c))
+    off = (xy_px[0] - c - x0, xy_px[1] - c - y0)
+    st = render_donut(telescope, field_deg, detector_offset_mm, settings, n_photons=n_photons,
+                      n_rays=n_photons, offset_px=off, rng=rng)
+    ya, yb = max(y0, 0), min(y0 + render_px, rows)
+    xa, xb = max(x0, 0), min(x0 + render_px, cols)
+    if ya < yb and xa < xb:
+        img[ya:yb, xa:xb] += st[ya - y0:yb - y0, xa - x0:xb - x0]

@@ -31,8 +31,9 @@ moderately loaded. Batoid's trace is single-threaded here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import batoid
 import numpy as np
@@ -44,6 +45,7 @@ from cwfs_ros.wfs.blur import FWHM_PER_SIGMA
 
 __all__ = [
     "CornerSensor",
+    "RenderSettings",
     "TracedRays",
     "camera_zernikes_nm",
     "corner_fields",
@@ -210,34 +212,12 @@ def _bin_to_stamp(xs_px: np.ndarray, ys_px: np.ndarray, npix: int, weights: floa
     return counts.reshape(npix, npix) * weights
 
 
-def render_donut(
-    telescope: batoid.Optic,
-    field_deg: tuple[float, float],
-    detector_offset_mm: float,
-    *,
-    wavelength_nm: float,
-    npix: int = 160,
-    pixel_um: float = 10.0,
-    n_photons: float = 1e6,
-    n_rays: int | None = None,
-    seeing_fwhm_arcsec: float = 0.0,
-    sky_per_pixel: float = 0.0,
-    read_noise_e: float = 0.0,
-    offset_px: tuple[float, float] = (0.0, 0.0),
-    rng: np.random.Generator | None = None,
-    centre: str | tuple[float, float] = "chief",
-    poisson: bool = True,
-    subtract_sky: bool = False,
-    sampling: str = "random",
-) -> np.ndarray:
-    """Ray-trace a defocused star image ("donut") on an LSST wavefront sensor.
+@dataclass(frozen=True)
+class RenderSettings:
+    """How :func:`render_donut` renders a donut: the detector, the light and the noise.
 
-    Parameters
+    Attributes
     ----------
-    telescope : the in-focus (perturbed) telescope, e.g. from ``perturbed_telescope``.
-    field_deg : (theta_x, theta_y) of the star in degrees (batoid field frame).
-    detector_offset_mm : detector displacement in mm; negative = intra-focal (before focus),
-        positive = extra-focal. LSST corner sensors use -1.5 / +1.5.
     wavelength_nm : monochromatic wavelength in nm.
     npix : stamp side in pixels.
     pixel_um : pixel pitch in µm.
@@ -254,7 +234,6 @@ def render_donut(
     read_noise_e : Gaussian read noise, sigma in electrons per pixel.
     offset_px : (dx, dy) shift of the donut within the stamp in pixels: +dx moves it towards
         larger column index, +dy towards larger row index.
-    rng : random generator for ray positions and noise (fresh default if None).
     centre : reference point of the stamp. ``"chief"``: the chief ray's hit on the detector.
         ``"centroid"``: the mean position of the surviving rays, before seeing. A tuple
         ``(x_m, y_m)``: a fixed detector position in metres, in the detector's local frame.
@@ -266,6 +245,66 @@ def render_donut(
         :func:`trace_pupil_rays`); ``"quasi"`` with ``poisson=False`` renders the
         noise-free image.
 
+    Raises ValueError for a stamp of no pixels, no photons or an unknown ``centre``.
+    """
+
+    wavelength_nm: float
+    npix: int = 160
+    pixel_um: float = 10.0
+    n_photons: float = 1e6
+    n_rays: int | None = None
+    seeing_fwhm_arcsec: float = 0.0
+    sky_per_pixel: float = 0.0
+    read_noise_e: float = 0.0
+    offset_px: tuple[float, float] = (0.0, 0.0)
+    centre: str | tuple[float, float] = "chief"
+    poisson: bool = True
+    subtract_sky: bool = False
+    sampling: str = "random"
+
+    def __post_init__(self) -> None:
+        if self.npix < 1:
+            raise ValueError("npix must be >= 1")
+        if self.n_photons <= 0:
+            raise ValueError("n_photons must be > 0")
+        if isinstance(self.centre, str) and self.centre not in ("chief", "centroid"):
+            raise ValueError("centre must be 'chief', 'centroid' or an (x_m, y_m) tuple")
+
+    def ray_count(self) -> int:
+        """Rays to trace: ``n_rays``, or ``min(n_photons, 2e6)`` (at least one)."""
+        if self.n_rays is None:
+            return int(max(1, round(min(float(self.n_photons), 2e6))))
+        return self.n_rays
+
+
+def render_donut(
+    telescope: batoid.Optic,
+    field_deg: tuple[float, float],
+    detector_offset_mm: float,
+    settings: RenderSettings | None = None,
+    *,
+    rng: np.random.Generator | None = None,
+    **options: Any,
+) -> np.ndarray:
+    """Ray-trace a defocused star image ("donut") on an LSST wavefront sensor.
+
+    The steps: trace photons through the defocused telescope (:func:`trace_pupil_rays`),
+    place the survivors on the stamp relative to its reference point, with seeing
+    (:func:`_stamp_positions`), bin them into pixels, and add the sky and the detector's
+    noise (:func:`_detector_noise`).
+
+    Parameters
+    ----------
+    telescope : the in-focus (perturbed) telescope, e.g. from ``perturbed_telescope``.
+    field_deg : (theta_x, theta_y) of the star in degrees (batoid field frame).
+    detector_offset_mm : detector displacement in mm; negative = intra-focal (before focus),
+        positive = extra-focal. LSST corner sensors use -1.5 / +1.5.
+    settings : the detector, light and noise (:class:`RenderSettings`).
+    rng : random generator for ray positions and noise (fresh default if None).
+    **options : fields of :class:`RenderSettings` (``wavelength_nm``, ``npix``,
+        ``n_photons``, ``offset_px`` ...), replacing those of ``settings``; without
+        ``settings`` they make one (``wavelength_nm`` is then required).
+
     Returns
     -------
     numpy.ndarray
@@ -276,54 +315,57 @@ def render_donut(
         corner of the four central pixels. In pixel-centre convention it is
         ``(npix - 1) / 2 + offset``.
     """
-    if npix < 1:
-        raise ValueError("npix must be >= 1")
-    if n_photons <= 0:
-        raise ValueError("n_photons must be > 0")
-    if isinstance(centre, str) and centre not in ("chief", "centroid"):
-        raise ValueError("centre must be 'chief', 'centroid' or an (x_m, y_m) tuple")
+    s = RenderSettings(**options) if settings is None else replace(settings, **options)
     rng = np.random.default_rng() if rng is None else rng
-    if n_rays is None:
-        n_rays = int(max(1, round(min(float(n_photons), 2e6))))
+    n_rays = s.ray_count()
+    rays = trace_pupil_rays(telescope, field_deg, detector_offset_mm,
+                            wavelength_nm=s.wavelength_nm, n_rays=n_rays, rng=rng,
+                            sampling=s.sampling)
+    xs, ys = _stamp_positions(rays, telescope, field_deg, s, rng)
+    image = _bin_to_stamp(xs, ys, s.npix, float(s.n_photons) / n_rays)
+    return _detector_noise(image, s, rng)
 
-    rays = trace_pupil_rays(
-        telescope,
-        field_deg,
-        detector_offset_mm,
-        wavelength_nm=wavelength_nm,
-        n_rays=n_rays,
-        rng=rng,
-        sampling=sampling,
-    )
+
+def _stamp_positions(rays: TracedRays, telescope: batoid.Optic,
+                     field_deg: tuple[float, float], s: RenderSettings,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel coordinates (pixel i spans [i, i+1)) of the rays that reached the
+    detector: relative to the stamp's reference point (``s.centre``), blurred by the seeing
+    (independent Gaussian offsets per ray), and placed so that the reference point lands at
+    ``npix / 2 + offset_px``."""
     x = rays.x[rays.ok]
     y = rays.y[rays.ok]
-    if not isinstance(centre, str):
-        x0, y0 = _pair(centre)
-    elif centre == "chief":
+    if not isinstance(s.centre, str):
+        x0, y0 = _pair(s.centre)
+    elif s.centre == "chief":
         x0, y0 = rays.chief_x, rays.chief_y
     else:
         x0, y0 = (float(np.mean(x)), float(np.mean(y))) if x.size else (0.0, 0.0)
-
-    pix_m = float(pixel_um) * 1e-6
+    pix_m = float(s.pixel_um) * 1e-6
     xs = (x - x0) / pix_m
     ys = (y - y0) / pix_m
-    if seeing_fwhm_arcsec > 0:
-        scale = plate_scale_um_per_arcsec(telescope, field_deg, wavelength_nm=wavelength_nm)
-        sigma_px = seeing_fwhm_arcsec / FWHM_PER_SIGMA * scale / float(pixel_um)
+    if s.seeing_fwhm_arcsec > 0:
+        scale = plate_scale_um_per_arcsec(telescope, field_deg, wavelength_nm=s.wavelength_nm)
+        sigma_px = s.seeing_fwhm_arcsec / FWHM_PER_SIGMA * scale / float(s.pixel_um)
         xs = xs + rng.normal(0.0, sigma_px, xs.size)
         ys = ys + rng.normal(0.0, sigma_px, ys.size)
-    xs += 0.5 * npix + float(offset_px[0])
-    ys += 0.5 * npix + float(offset_px[1])
+    xs += 0.5 * s.npix + float(s.offset_px[0])
+    ys += 0.5 * s.npix + float(s.offset_px[1])
+    return xs, ys
 
-    image = _bin_to_stamp(xs, ys, npix, float(n_photons) / n_rays)
-    if sky_per_pixel:
-        image += float(sky_per_pixel)
-    if poisson:
+
+def _detector_noise(image: np.ndarray, s: RenderSettings,
+                    rng: np.random.Generator) -> np.ndarray:
+    """The expected image plus sky, drawn as Poisson counts (``s.poisson``), plus Gaussian
+    read noise, less the sky if ``s.subtract_sky``."""
+    if s.sky_per_pixel:
+        image += float(s.sky_per_pixel)
+    if s.poisson:
         image = rng.poisson(image).astype(np.float64)
-    if read_noise_e > 0:
-        image += rng.normal(0.0, float(read_noise_e), image.shape)
-    if subtract_sky and sky_per_pixel:
-        image -= float(sky_per_pixel)
+    if s.read_noise_e > 0:
+        image += rng.normal(0.0, float(s.read_noise_e), image.shape)
+    if s.subtract_sky and s.sky_per_pixel:
+        image -= float(s.sky_per_pixel)
     return image
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import batoid
 import numpy as np
 
-from cwfs_ros.sim.render import render_donut
+from cwfs_ros.sim.render import RenderSettings, render_donut
 
 __all__ = ["DonutSpec", "FrameSpec", "make_render_pool", "render_frames", "render_visit"]
 
@@ -70,15 +70,11 @@ def make_render_pool(n_workers: int) -> ProcessPoolExecutor | None:
     return ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker)
 
 
-def _render_one(telescope: batoid.Optic, spec: DonutSpec, wavelength_nm: float, npix: int,
-                n_photons: float, sky_per_pixel: float, seeing_fwhm_arcsec: float,
-                read_noise_e: float) -> np.ndarray:
-    return render_donut(
-        telescope, spec.field_deg, spec.detector_offset_mm, wavelength_nm=wavelength_nm,
-        npix=npix, n_photons=n_photons, sky_per_pixel=sky_per_pixel,
-        seeing_fwhm_arcsec=seeing_fwhm_arcsec, read_noise_e=read_noise_e,
-        offset_px=spec.offset_px, rng=np.random.default_rng(spec.seed), poisson=True,
-        subtract_sky=True).astype(np.float32)
+def _render_one(telescope: batoid.Optic, spec: DonutSpec, settings: RenderSettings
+                ) -> np.ndarray:
+    return render_donut(telescope, spec.field_deg, spec.detector_offset_mm, settings,
+                        offset_px=spec.offset_px,
+                        rng=np.random.default_rng(spec.seed)).astype(np.float32)
 
 
 def render_visit(telescope: batoid.Optic, specs: Sequence[DonutSpec], *, wavelength_nm: float,
@@ -98,11 +94,14 @@ def render_visit(telescope: batoid.Optic, specs: Sequence[DonutSpec], *, wavelen
     Returns:
         ``{spec.key: image}``.
     """
-    args = (wavelength_nm, int(npix), float(n_photons), float(sky_per_pixel),
-            float(seeing_fwhm_arcsec), float(read_noise_e))
+    settings = RenderSettings(wavelength_nm=wavelength_nm, npix=int(npix),
+                              n_photons=float(n_photons), sky_per_pixel=float(sky_per_pixel),
+                              seeing_fwhm_arcsec=float(seeing_fwhm_arcsec),
+                              read_noise_e=float(read_noise_e), poisson=True,
+                              subtract_sky=True)
     if executor is None:
-        return {s.key: _render_one(telescope, s, *args) for s in specs}
-    futures = {s.key: executor.submit(_render_one, telescope, s, *args) for s in specs}
+        return {s.key: _render_one(telescope, s, settings) for s in specs}
+    futures = {s.key: executor.submit(_render_one, telescope, s, settings) for s in specs}
     return {k: f.result() for k, f in futures.items()}
 
 

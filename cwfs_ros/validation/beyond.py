@@ -53,7 +53,12 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
     noise, at no ray-tracing cost per trial.  The truth is ``true_zernikes_nm`` at the
     mid-point field.  The check: the noise part (spread over seeds) falls as N^-1/2.
     """
-    from cwfs_ros.sim.render import load_corner_geometry, render_donut, true_zernikes_nm
+    from cwfs_ros.sim.render import (
+        RenderSettings,
+        load_corner_geometry,
+        render_donut,
+        true_zernikes_nm,
+    )
     from cwfs_ros.sim.telescope import load_lsst
 
     c = load_corner_geometry()["R44"]
@@ -63,8 +68,9 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
     rng = np.random.default_rng(opts.seed + 11)
     n_rays = int(8e6 if not opts.quick else 3e6)
     # Probability per pixel of one photon entering the unvignetted pupil.
-    probs = [render_donut(tel, f, s * SPLIT.defocus_mm, wavelength_nm=wl, npix=SPLIT.npix,
-                          n_photons=1.0, n_rays=n_rays, rng=rng, poisson=False)
+    unit = RenderSettings(wavelength_nm=wl, npix=SPLIT.npix, n_photons=1.0, n_rays=n_rays,
+                          poisson=False)
+    probs = [render_donut(tel, f, s * SPLIT.defocus_mm, unit, rng=rng)
              for f, s in ((fi, -1.0), (fe, 1.0))]
     truth = true_zernikes_nm(tel, mid, wavelength_nm=wl, eps=EPS)
     levels = np.array(opts.noise_levels, float)

@@ -111,12 +111,13 @@ def lsst_pair(tel: Any, fi: tuple, fe: tuple, setup: SensorSetup, wl: float,
                ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-traced (intra, extra) donuts: ``photons`` with Poisson noise, or, for None, the
     noise-free image of ``rays`` quasi-random rays (scaled to 1e6 photons)."""
-    from cwfs_ros.sim.render import render_donut
+    from cwfs_ros.sim.render import RenderSettings, render_donut
 
-    kw: dict[str, Any] = (dict(n_photons=photons) if photons is not None else
-                          dict(n_photons=1e6, n_rays=rays, poisson=False, sampling="quasi"))
-    return tuple(render_donut(tel, f, s * setup.defocus_mm, wavelength_nm=wl, npix=setup.npix,
-                              rng=rng, **kw)
+    settings = RenderSettings(wavelength_nm=wl, npix=setup.npix, n_photons=1e6, n_rays=rays,
+                              poisson=False, sampling="quasi")
+    if photons is not None:
+        settings = RenderSettings(wavelength_nm=wl, npix=setup.npix, n_photons=photons)
+    return tuple(render_donut(tel, f, s * setup.defocus_mm, settings, rng=rng)
                  for f, s in ((fi, -1.0), (fe, 1.0)))  # type: ignore[return-value]
 
 

@@ -7,11 +7,11 @@ before it samples the images (:func:`.estimator.estimate_wavefront`).  The two m
 differ (the fast beam, §3.2; the design aberrations off axis, §3.3; two fields on a split
 sensor, §3.4), so the blurred rim and obscuration of the two compensated images differ
 by a few hundredths of a pixel, and the curvature of a blurred circle moves its
-half-light edge by ``sigma^2 / 2R``.  The TIE difference image (eq. 8) then holds an edge
-signal that no wavefront made.  The least-squares solver reads the wavefront from the
-edges (:class:`.tie.LeastSquares`).  Without noise, at the corner sensors and with 1"
-seeing, it read 10-14 nm rms of astigmatism and trefoil out of that signal
-(``bench/bench_seeing.py``).
+half-light edge by ``sigma^2 / 2R``.  The TIE signal, the difference of the images
+(§2.1), then holds an edge signal that no wavefront made.  The least-squares solver reads
+the wavefront from the edges (:class:`.tie.LeastSquares`).  Without noise, at the corner
+sensors and with 1" seeing, it read 10-14 nm rms of astigmatism and trefoil out of that
+signal (``bench/bench_seeing.py``).
 
 :func:`blur_reference` predicts that signal. It renders the design donut of each side
 from its mapping (:func:`design_donut`: the uniform pupil carried to the image and
@@ -20,12 +20,12 @@ compensated.  The outer loop subtracts the difference of the two from the measur
 
 The vignetting edges are rendered where batoid traces them (:func:`design_donut`): with
 them cut at the pupil grid's staircase instead, the split corner sensor kept 5-6 nm rms of
-Z6 and Z10 on a perfect telescope, noise-free (README, Accuracy, Seeing).
+Z6 and Z10 on a perfect telescope, noise-free (docs/accuracy.md, Seeing).
 
 The prediction is made once per pair geometry, for the design wavefront.  Made again at
 the loop's current estimate it did worse on perturbed telescopes (on axis 1.2 -> 2.2 nm
 rms without seeing), and leaving it out near vignetting edges did worse with seeing
-(corner, 1": 1.7 -> 4.5 nm); README, Accuracy.
+(corner, 1": 1.7 -> 4.5 nm); docs/accuracy.md.
 """
 
 from __future__ import annotations
@@ -108,9 +108,34 @@ def design_donut(mapping: ImageMapping, x: np.ndarray, y: np.ndarray, spacing: f
     """
     offs = ((np.arange(sub) + 0.5) / sub - 0.5) * spacing
     dx, dy = (a.ravel().astype(np.float32) for a in np.meshgrid(offs, offs))
+    cells, keep = _transmitted_points(mapping, x, y, (dx, dy), spacing, obscuration,
+                                      transmission, grid)
+    f = [a[cells, None].astype(np.float32) for a in
+         (mapping.x_px, mapping.y_px, mapping.jxx, mapping.jxy, mapping.jyx, mapping.jyy)]
+    # Fine pixel j spans [j / over - 0.5, (j + 1) / over - 0.5) in pixel-centre coordinates.
+    cu = np.float32((centre_xy[0] + 0.5) * over - 0.5)
+    cv = np.float32((centre_xy[1] + 0.5) * over - 0.5)
+    u = ((f[0] + f[2] * dx + f[3] * dy) * over + cu)[keep]
+    v = ((f[1] + f[4] * dx + f[5] * dy) * over + cv)[keep]
+    return _splat_to_pixels(u, v, shape, over)
+
+
+def _transmitted_points(mapping: ImageMapping, x: np.ndarray, y: np.ndarray,
+                        offsets: tuple[np.ndarray, np.ndarray], spacing: float,
+                        obscuration: float,
+                        transmission: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+                        grid: tuple[tuple[int, int], np.ndarray] | None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """(cells, keep): the grid cells that can hold transmitted light, and which of their
+    sub-points (``offsets`` from the cell centre) are transmitted, shape (cells, sub^2).
+
+    A cell qualifies if it can hold part of the annulus and its centre is not vignetted
+    (points outside the annulus are not "transmitted" in the mapping, but their cells may
+    reach in), or if it lies on a vignetting edge, where each sub-point is asked of
+    ``transmission`` (§3.3: the vignetting as batoid traces it).
+    """
+    dx, dy = offsets
     r = np.hypot(x, y)
-    # Cells that can hold part of the annulus, and whose centre is not vignetted (points
-    # outside the annulus are not "transmitted" in the mapping, but their cells may reach in).
     half_diag = spacing / np.sqrt(2.0)
     annulus = (r <= 1.0) & (r >= obscuration)
     near = (r <= 1.0 + half_diag) & (r >= obscuration - half_diag)
@@ -131,15 +156,16 @@ def design_donut(mapping: ImageMapping, x: np.ndarray, y: np.ndarray, spacing: f
         sub_keep = keep[rows].copy()
         sub_keep[ask] = ok
         keep[rows] = sub_keep
-    f = [a[cells, None].astype(np.float32) for a in
-         (mapping.x_px, mapping.y_px, mapping.jxx, mapping.jxy, mapping.jyx, mapping.jyy)]
-    # Fine pixel j spans [j / over - 0.5, (j + 1) / over - 0.5) in pixel-centre coordinates.
-    cu = np.float32((centre_xy[0] + 0.5) * over - 0.5)
-    cv = np.float32((centre_xy[1] + 0.5) * over - 0.5)
-    u = ((f[0] + f[2] * dx + f[3] * dy) * over + cu)[keep]
-    v = ((f[1] + f[4] * dx + f[5] * dy) * over + cv)[keep]
+    return cells, keep
+
+
+def _splat_to_pixels(u: np.ndarray, v: np.ndarray, shape: tuple[int, int],
+                     over: int) -> np.ndarray:
+    """Points at fine-grid coordinates (u, v) splatted bilinearly on a grid ``over`` times
+    finer than the pixels, then summed over each pixel's ``over x over`` block: the pixel
+    integration of the detector.  Only the donut's box of the fine grid is built (whole
+    pixels, one pixel of margin); points falling off the image are dropped."""
     ny, nx = shape
-    # Only the donut's box of the fine grid (whole pixels), one pixel of margin.
     u_lo = max(int(np.floor(u.min() / over)) - 1, 0) * over if u.size else 0
     v_lo = max(int(np.floor(v.min() / over)) - 1, 0) * over if v.size else 0
     fx = min(int(np.ceil((u.max() + 2) / over)) + 1, nx) * over - u_lo if u.size else over
@@ -149,7 +175,6 @@ def design_donut(mapping: ImageMapping, x: np.ndarray, y: np.ndarray, spacing: f
     u0, v0 = np.floor(u), np.floor(v)
     tu, tv = u - u0, v - v0
     iu, iv = u0.astype(np.int64), v0.astype(np.int64)
-    # Points falling off the image (a donut larger than its stamp) are dropped.
     ok = (iu >= 0) & (iu < fx - 1) & (iv >= 0) & (iv < fy - 1)
     iu, iv, tu, tv = iu[ok], iv[ok], tu[ok], tv[ok]
     k = iv * fx + iu

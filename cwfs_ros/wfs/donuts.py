@@ -135,6 +135,14 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
                   checks: CheckConfig | None = None) -> PreparedDonut:
     """Validate a donut stamp and measure background, centroid and flux.
 
+    Paper §3.4: each image gets its own local background and flux measurement, as the two
+    images of a split sensor come from different stars.  The steps: the stamp is checked
+    (:func:`_checked_stamp`), a first centroid found above a threshold over the border's
+    background (:func:`_thresholded_centroid`), the background re-measured away from the
+    donut (:func:`_sky_outside`), the centroid iterated with a window holding all the light
+    (:func:`_window_centroid`), and the donut tested for saturation, S/N and the stamp
+    edges (:func:`_check_edges`).
+
     Args:
         image: 2-D stamp ``[row=y, col=x]``.
         name: ``"intra"`` or ``"extra"`` (used in error messages).
@@ -150,6 +158,45 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
         a stamp too small for the donut at this defocus, a donut cut by the stamp edge, a
         saturated or clipped donut.
     """
+    img = _checked_stamp(image, name, outer_radius_px, margin_px)
+    border = np.concatenate([img[:2].ravel(), img[-2:].ravel(), img[2:-2, :2].ravel(),
+                             img[2:-2, -2:].ravel()])
+    bg, sig = _robust_level(border)
+    ys, xs = _pixel_axes(img.shape)
+    peak, centre = _thresholded_centroid(img - bg, ys, xs, name)
+    sky, bg, sig = _sky_outside(img, ys, xs, centre, outer_radius_px, border, (bg, sig))
+    work = img - bg
+    centre, r_win = _window_centroid(work, ys, xs, centre, outer_radius_px, sig, name)
+    cx, cy = centre
+    r2 = _radius2(ys, xs, cx, cy)
+    inside = r2 <= r_win * r_win
+    # Saturation before the flux tests: a donut clipped near its background would otherwise
+    # be reported as faint.  A background that is exactly constant means a noise-free
+    # (model) image, whose flat top need not be saturation.
+    body_mask = (r2 <= outer_radius_px**2) & (work > 0.3 * peak)
+    check_saturation(img, name=name, background=bg, noise_present=bool(np.ptp(sky) > 0),
+                     donut=inside, body_pixels=int(body_mask.sum()), level=saturation_level,
+                     config=checks or CheckConfig())
+    flux = float(work[inside].sum())
+    npix = int(inside.sum())
+    # Background-limited S/N: the input units need not be photons, so no Poisson term.
+    noise_var = npix * sig * sig
+    snr = flux / np.sqrt(noise_var) if noise_var > 0 else np.inf
+    if flux <= 0 or snr < MIN_SNR:
+        raise FlatImageError(
+            f"{name} image holds no donut: flux {flux:.4g} at S/N {snr:.1f} "
+            f"(minimum {MIN_SNR:g})"
+        )
+    body = work[body_mask]
+    _check_edges(work, centre, outer_radius_px, margin_px,
+                 float(np.median(body)) if body.size else peak, name)
+    return PreparedDonut(work, bg, sig, (cx, cy), flux, float(snr))
+
+
+def _checked_stamp(image: np.ndarray, name: str, outer_radius_px: float,
+                   margin_px: float) -> np.ndarray:
+    """The stamp as a float64 copy, if it is a finite 2-D real image large enough for the
+    donut and its margin and not constant; otherwise the ImageError naming why not."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise ImageError(f"{name} image must be 2-D, got shape {img.shape}")
@@ -170,43 +217,54 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
         )
     if float(img.max() - img.min()) == 0.0:
         raise FlatImageError(f"{name} image is constant ({img.flat[0]!r}): no donut")
+    return img
 
-    ny, nx = img.shape
-    # First pass: background from the stamp border, then a thresholded centroid.
-    border = np.concatenate([img[:2].ravel(), img[-2:].ravel(), img[2:-2, :2].ravel(),
-                             img[2:-2, -2:].ravel()])
-    bg, sig = _robust_level(border)
-    work = img - bg
+
+def _thresholded_centroid(work: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+                          name: str) -> tuple[float, tuple[float, float]]:
+    """(peak, (col, row)): a robust peak level (the 99.5th percentile of every other pixel)
+    of the background-subtracted stamp, and the centroid of the pixels above 30 % of it: a
+    first guess that stray pixels cannot pull far."""
     sub = work[::2, ::2].ravel()
     k = int(0.995 * (sub.size - 1))
     peak = float(np.partition(sub, k)[k])
     if peak <= 0:
         raise FlatImageError(f"{name} image has no flux above its background")
-    ys, xs = _pixel_axes(img.shape)
     w = np.where(work > 0.3 * peak, work, 0.0)
-    tot = w.sum()
-    cx, cy = _centroid(w, ys, xs, tot)
+    return peak, _centroid(w, ys, xs, w.sum())
 
-    # Second pass: background from pixels well outside the donut, where there are enough,
-    # then the flux-weighted centroid of everything inside the donut's radius.
-    r2 = _radius2(ys, xs, cx, cy)
+
+def _sky_outside(img: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+                 centre: tuple[float, float], outer_radius_px: float, border: np.ndarray,
+                 level: tuple[float, float]) -> tuple[np.ndarray, float, float]:
+    """(sky pixels, background, noise): from the pixels well outside the donut where there
+    are enough of them (at least 50 and 5 % of the stamp), else the border's ``level``."""
+    r2 = _radius2(ys, xs, *centre)
     outside = r2 > (outer_radius_px + 2 * _SPILL_PX) ** 2
-    sky = border
     if outside.sum() >= max(50, 0.05 * img.size):
         sky = img[outside]
         bg, sig = _robust_level(sky)
-        work = img - bg
-    inside = r2 <= (outer_radius_px + _SPILL_PX) ** 2
-    w = np.where(inside, work, 0.0)
+        return sky, bg, sig
+    return border, level[0], level[1]
+
+
+def _window_centroid(work: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+                     centre: tuple[float, float], outer_radius_px: float, sig: float,
+                     name: str) -> tuple[tuple[float, float], float]:
+    """((col, row), window radius): the flux-weighted centroid of all the donut's light.
+
+    The window and the centroid depend on each other: the window is re-centred on the
+    centroid of the light inside it, and grown to all the light (:func:`_light_radius`),
+    until the centroid stops moving (0.01 px; at most 10 passes).  A window centred on the
+    first, thresholded centroid cuts a comatic donut's far side and pulls the centroid by
+    pixels (3 px at 3 um of Z5).
+    """
+    cx, cy = centre
+    w = np.where(_radius2(ys, xs, cx, cy) <= (outer_radius_px + _SPILL_PX) ** 2, work, 0.0)
     tot = w.sum()
     if tot <= 0:
         raise FlatImageError(f"{name} image has no flux above its background")
     cx, cy = _centroid(w, ys, xs, tot)
-
-    # The window and the centroid depend on each other: re-centre the window on the
-    # centroid of the light inside it, growing it to all the light (_light_radius), until
-    # the centroid stops moving.  A window centred on the first, thresholded centroid cuts
-    # a comatic donut's far side and pulls the centroid by pixels (3 px at 3 um of Z5).
     for _ in range(10):
         r2 = _radius2(ys, xs, cx, cy)
         r_win = _light_radius(work, r2, outer_radius_px + _SPILL_PX, sig, tot)
@@ -219,27 +277,16 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
         cx, cy = nx_, ny_
         if moved < 0.01:
             break
-    r2 = _radius2(ys, xs, cx, cy)
-    inside = r2 <= r_win * r_win
-    # Saturation before the flux tests: a donut clipped near its background would otherwise
-    # be reported as faint.  A background that is exactly constant means a noise-free
-    # (model) image, whose flat top need not be saturation.
-    body_mask = (r2 <= outer_radius_px**2) & (work > 0.3 * peak)
-    check_saturation(img, name=name, background=bg, noise_present=bool(np.ptp(sky) > 0),
-                     donut=inside, body_pixels=int(body_mask.sum()), level=saturation_level,
-                     config=checks or CheckConfig())
-    flux = float(work[inside].sum())
-    npix = int(inside.sum())
-    # Background-limited S/N: the input units need not be photons, so no Poisson term.
-    noise_var = npix * sig * sig
-    snr = flux / np.sqrt(noise_var) if noise_var > 0 else np.inf
-    if flux <= 0 or snr < MIN_SNR:
-        raise FlatImageError(
-            f"{name} image holds no donut: flux {flux:.4g} at S/N {snr:.1f} "
-            f"(minimum {MIN_SNR:g})"
-        )
+    return (cx, cy), r_win
 
-    # Edge checks: the donut (plus margin) must fit, and the border must be dark.
+
+def _check_edges(work: np.ndarray, centre: tuple[float, float], outer_radius_px: float,
+                 margin_px: float, level: float, name: str) -> None:
+    """DonutCutError unless the donut's circle lies inside the stamp and the stamp's border
+    is dark (below ``_EDGE_FRACTION`` of the donut's median ``level``); StampTooSmallError
+    unless it also leaves the solver's margin inside the stamp."""
+    ny, nx = work.shape
+    cx, cy = centre
     lo_x, hi_x = cx - outer_radius_px, cx + outer_radius_px
     lo_y, hi_y = cy - outer_radius_px, cy + outer_radius_px
     if lo_x < 0 or lo_y < 0 or hi_x > nx - 1 or hi_y > ny - 1:
@@ -247,8 +294,6 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
             f"{name} donut (centre col {cx:.1f}, row {cy:.1f}, radius {outer_radius_px:.1f} px) "
             f"extends beyond the {nx}x{ny} stamp"
         )
-    body = work[body_mask]
-    level = float(np.median(body)) if body.size else peak
     edge_means = [work[0].mean(), work[-1].mean(), work[:, 0].mean(), work[:, -1].mean()]
     if max(edge_means) > _EDGE_FRACTION * level:
         raise DonutCutError(
@@ -261,4 +306,3 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
             f"{name} donut is off-centre: centre (col {cx:.1f}, row {cy:.1f}) leaves less than "
             f"the {margin_px:.0f} px margin the solver needs inside the {nx}x{ny} stamp"
         )
-    return PreparedDonut(work, bg, sig, (cx, cy), flux, float(snr))

@@ -45,8 +45,14 @@ from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError, ShapeMismatchError
 from cwfs_ros.layout import NOLL
 from cwfs_ros.wfs.blur import blur_reference, check_seeing, image_blur_sigma_px
-from cwfs_ros.wfs.checks import CheckConfig, PairFootprints, check_not_swapped, pair_footprints
-from cwfs_ros.wfs.compensation import compensate
+from cwfs_ros.wfs.checks import (
+    CheckConfig,
+    PairFootprints,
+    SwapScore,
+    check_not_swapped,
+    pair_footprints,
+)
+from cwfs_ros.wfs.compensation import Compensated, compensate
 from cwfs_ros.wfs.donuts import PreparedDonut, prepare_donut
 from cwfs_ros.wfs.instrument import Instrument, load_instrument
 from cwfs_ros.wfs.mapping import (
@@ -59,8 +65,8 @@ from cwfs_ros.wfs.mapping import (
 from cwfs_ros.wfs.tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from cwfs_ros.wfs.zernike import ZernikeBasis, gram_matrix, zernike_basis
 
-__all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "load_algorithm",
-           "load_checks", "PairGeometry", "pair_geometry"]
+__all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "EstimateConfig",
+           "load_algorithm", "load_checks", "PairGeometry", "pair_geometry"]
 
 NOLL_REPORTED = np.asarray(NOLL)  # Z4..Z22, the published product
 
@@ -82,10 +88,10 @@ class AlgorithmConfig:
     smooth_sigma_px: float = 1.0
     # Basis in which the outer loop truncates the feedback to the schedule's Noll index:
     # "zernike" (the paper) or "orthonormal" (the annular Zernikes Gram-Schmidt
-    # orthonormalised on the common vignetted pupil, §3.3; see README, Accuracy).
+    # orthonormalised on the common vignetted pupil, §3.3; see docs/accuracy.md).
     feedback_basis: str = "zernike"
     # Register the compensated pupils on the primary's outer rim at every outer iteration
-    # (corrects centroid alignment biased by vignetting-model errors; README, Accuracy).
+    # (corrects centroid alignment biased by vignetting-model errors; docs/accuracy.md).
     register_rim: bool = True
     # Side (deg) of the field tiles over which the design wavefront is interpolated
     # (:func:`.mapping.design_zernikes_tiled`; ~0.1 nm from the direct trace); 0: direct.
@@ -96,12 +102,12 @@ class AlgorithmConfig:
     # Star pairs of one corner after the first start their outer loop from its departure
     # (estimate_wavefront(initial_nm=...), cwfs_ros.frames.selection.estimate_pairs).  Only
     # where the configured loop reaches its fixed point, which then does not depend on the
-    # start: lsq does; exp and fft stop short of it on split pairs (README, Accuracy).
+    # start: lsq does; exp and fft stop short of it on split pairs (docs/accuracy.md).
     warm_start: bool = False
     # Feedback gain of a warm-started loop (estimate_wavefront(initial_nm=...)): near its
     # fixed point the loop is linear and the lsq model's response matches the images'
     # (contraction 0.39 per iteration at gain 0.6), so the full step converges in ~4
-    # iterations instead of ~8, to the same point within 0.02 nm (README, Frames).
+    # iterations instead of ~8, to the same point within 0.02 nm (docs/accuracy.md, Frames).
     warm_start_gain: float = 0.6
     # Subtract the edge signal of the image blur (seeing, pixels, smoothing) from the
     # difference image, predicted from the compensated design donuts (:mod:`.blur`).
@@ -353,7 +359,7 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
 
     The images are aligned by their flux centroids, whose model depends on the vignetting
     model: where the real vignetting edges differ from the model's by a pixel (the FAM edge
-    fields, README), the centroids put both compensated pupils ~1.5 px off the mapping, and
+    fields, docs/design.md), the centroids put both compensated pupils ~1.5 px off the mapping, and
     the design wavefront, sampled at shifted pupil points, reads as tens of nm of
     astigmatism and coma.  The primary's outer edge is the pupil stop, known exactly; on
     the arcs where no vignetting edge is near, the mean of the two compensated images,
@@ -413,7 +419,7 @@ def _pupil_grid(n: int, spacing: float, extent: float, obscuration: float, jmax:
 
     Field-independent: every pair of one instrument and defocus shares the grid, and a new
     field only selects its computation region from it (:meth:`ZernikeBasis.subset`), which
-    saves the basis and its derivatives per star pair (~4 ms, README Speed).
+    saves the basis and its derivatives per star pair (~4 ms, docs/performance.md).
     """
     ax = (np.arange(n) - (n - 1) / 2.0) * spacing
     gx, gy = np.meshgrid(ax, ax)
@@ -443,24 +449,21 @@ def _candidate_positions(n: int, spacing: float, extent: float, obscuration: flo
 def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
                   field_intra_deg: tuple[float, float], field_extra_deg: tuple[float, float],
                   defocus_mm: float, algo: AlgorithmConfig) -> PairGeometry:
-    """Build (and cache) the geometry of an intra/extra pair.  Depends on no image data."""
+    """Build (and cache) the geometry of an intra/extra pair.  Depends on no image data.
+
+    The pupil grid (:func:`_grid_side`), each image's mapping at its own star's field
+    (§3.2-3.3), the computation region and the common-pupil signal weight (§3.4), the
+    solver, the design wavefront at the mid-point field (§3.4) and the alignment models.
+    """
     t0 = time.perf_counter()
     r_d = inst.donut_radius_px(defocus_mm)
-    spacing = 1.0 / (r_d * algo.oversample)
-    # Generous extent: the fast beam enlarges the donut by ~4%; the boundary adds more.
-    extent = 1.08 + (algo.boundary_px + 3) / r_d
-    # A transform-friendly grid side (the fft solver's cost depends on it).
-    n = sfft.next_fast_len(2 * int(np.ceil(extent / spacing)) + 1, real=True)
+    spacing, extent, n = _grid_side(r_d, algo)
     cand, x, y, grid_basis = _pupil_grid(n, spacing, extent, inst.obscuration, algo.jmax)
     kw = dict(defocus_mm=defocus_mm, band=band, wavelength_nm=wavelength_nm,
               tile_deg=algo.map_tile_deg)
-    m_in = nominal_mapping(inst, "intra", x, y, field_deg=field_intra_deg, **kw)
-    m_ex = nominal_mapping(inst, "extra", x, y, field_deg=field_extra_deg, **kw)
-    grid_in = np.zeros(n * n, bool)
-    grid_ex = np.zeros(n * n, bool)
-    grid_in[cand] = m_in.transmitted
-    grid_ex[cand] = m_ex.transmitted
-    full_in, full_ex = m_in, m_ex  # mapped over the whole annulus, for the footprints
+    full_in = nominal_mapping(inst, "intra", x, y, field_deg=field_intra_deg, **kw)
+    full_ex = nominal_mapping(inst, "extra", x, y, field_deg=field_extra_deg, **kw)
+    grid_in, grid_ex = (_on_grid(n, cand, m.transmitted) for m in (full_in, full_ex))
     if not (grid_in & grid_ex).any():
         raise ConfigError("intra and extra pupils do not overlap: check the field angles")
     # Computation region: the union of the pupils dilated by the boundary thickness.
@@ -468,79 +471,123 @@ def pair_geometry(inst: Instrument, band: str, wavelength_nm: float,
     cand_pos = _candidate_positions(n, spacing, extent, inst.obscuration, algo.jmax)
     region = np.flatnonzero(region2d.ravel() & (cand_pos >= 0))
     pos = cand_pos[region]
-
-    def take(m: ImageMapping) -> ImageMapping:
-        # float32 halves the memory traffic of the per-iteration compensation; positions
-        # keep ~1e-5 px precision on a 200 px stamp.
-        f32 = [np.ascontiguousarray(a[pos], dtype=np.float32)
-               for a in (m.x_px, m.y_px, m.jxx, m.jxy, m.jyx, m.jyy)]
-        return ImageMapping(m.side, *f32, m.transmitted[pos], m.c_px_per_nm, m.fit_rms_px)
-
-    m_in, m_ex = take(m_in), take(m_ex)
+    m_in, m_ex = _on_region(full_in, pos), _on_region(full_ex, pos)
     x, y = x[pos], y[pos]
     mask_in, mask_ex = m_in.transmitted, m_ex.transmitted
     common = mask_in & mask_ex
-    # Signal weight: zero where only one image is transmitted, and over a guard band around
-    # those places, because the blurred edge of the image that stops there reaches a couple
-    # of pixels into the common pupil, where the other image is still bright (paper §3.4's
-    # common mask, made robust to edge blur).  Edges the two pupils share keep their signal.
-    only_one = np.zeros(n * n, bool)
-    only_one[region] = mask_in ^ mask_ex
-    guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
-    near = _dilate(only_one.reshape(n, n), guard)
-    weight = np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
+    weight = _signal_weight(n, region, mask_in, mask_ex, algo)
     basis = grid_basis.subset(pos)
     kappa = _kappa(m_in, common) - _kappa(m_ex, common)
-    if algo.solver == "exp":
-        solver: SeriesExpansion | IterativeFFT | LeastSquares = SeriesExpansion(basis, common)
-    elif algo.solver == "fft":
-        solver = IterativeFFT((n, n), spacing, region, basis, common, algo.inner_iterations)
-    else:
-        solver = LeastSquares((n, n), spacing, region, basis, common,
-                              algo.edge_sigma_px * algo.oversample, mappings=(m_in, m_ex),
-                              kappa=kappa, weight=weight)
+    solver = _make_solver(algo, (n, n), spacing, region, basis, common, (m_in, m_ex), kappa,
+                          weight)
     mid = (0.5 * (field_intra_deg[0] + field_extra_deg[0]),
            0.5 * (field_intra_deg[1] + field_extra_deg[1]))
     intrinsic = design_zernikes_tiled(inst, band, wavelength_nm, mid, algo.jmax,
                                       algo.design_tile_deg)
-    # Radius of the circle around the flux centroid that holds the whole donut (off axis the
-    # donut is neither centred on the chief ray nor round).
-    outer = float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
-                               m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
-                      for m in (m_in, m_ex)))
-    # The swapped-pair footprints are built on first use (PairGeometry.footprints).
-    footprint_inputs = (full_in, full_ex, grid_in, grid_ex, cand, n, outer)
+    outer = _outer_radius_px(m_in, m_ex)
     feedback_l = (np.linalg.cholesky(gram_matrix(basis, common, j_min=1, j_max=basis.jmax))
                   if algo.feedback_basis == "orthonormal" else None)
-    r_pupil = np.hypot(x, y)
-    annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
     rim_index, rim_pinv = (None, None)
     if algo.register_rim:
+        r_pupil = np.hypot(x, y)
+        annulus = (r_pupil <= 1.0) & (r_pupil >= inst.obscuration)
         rim_index, rim_pinv = _rim_registration((n, n), spacing, region, x, y, annulus,
                                                 mask_in, mask_ex, r_d * algo.oversample,
                                                 algo)
     for arr in (x, y, mask_in, mask_ex, common, weight, region):
         arr.setflags(write=False)
-    def mean_gradient(mask: np.ndarray) -> np.ndarray:
-        """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
-        w = mask.astype(np.float32) / max(int(mask.sum()), 1)
-        return np.stack([basis.dx @ w, basis.dy @ w]).astype(float)
-
-    def centroid(m: ImageMapping) -> np.ndarray:
-        return np.array([float(m.x_px[m.transmitted].mean()),
-                         float(m.y_px[m.transmitted].mean())])
-
+    transmissions = tuple(partial(pupil_transmission, inst, side, field_deg=f, **kw)
+                          for side, f in (("intra", field_intra_deg), ("extra", field_extra_deg)))
     return PairGeometry((n, n), spacing, region, x, y, mask_in, mask_ex, common, weight,
                         m_in, m_ex, basis, solver, kappa, intrinsic, mid, outer,
-                        centroid(m_in), centroid(m_ex), mean_gradient(mask_in),
-                        mean_gradient(mask_ex), time.perf_counter() - t0, feedback_l,
+                        _model_centroid(m_in), _model_centroid(m_ex),
+                        _mean_gradient(basis, mask_in), _mean_gradient(basis, mask_ex),
+                        time.perf_counter() - t0, feedback_l,
                         rim_index, rim_pinv, _mean_jacobian(m_in), _mean_jacobian(m_ex),
-                        footprint_inputs, float(inst.obscuration),
-                        tuple(partial(pupil_transmission, inst, side, defocus_mm=defocus_mm,
-                                      band=band, wavelength_nm=wavelength_nm, field_deg=f,
-                                      tile_deg=algo.map_tile_deg)
-                              for side, f in (("intra", field_intra_deg),
-                                              ("extra", field_extra_deg))))
+                        # The swapped-pair footprints are built on first use.
+                        (full_in, full_ex, grid_in, grid_ex, cand, n, outer),
+                        float(inst.obscuration), transmissions)
+
+
+def _grid_side(r_d: float, algo: AlgorithmConfig) -> tuple[float, float, int]:
+    """(spacing, extent, n) of the square pupil grid for a donut of radius ``r_d`` px.
+
+    ``oversample`` grid samples per image pixel (§2.1's compensation oversampling).  The
+    extent is generous: the fast beam enlarges the donut by ~4 % (§3.2), and the boundary
+    adds more.  The side is transform-friendly, as the fft solver's cost depends on it.
+    """
+    spacing = 1.0 / (r_d * algo.oversample)
+    extent = 1.08 + (algo.boundary_px + 3) / r_d
+    n = sfft.next_fast_len(2 * int(np.ceil(extent / spacing)) + 1, real=True)
+    return spacing, extent, n
+
+
+def _on_grid(n: int, cand: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The candidate points' boolean ``values`` on the flat (n, n) pupil grid (False off
+    them)."""
+    grid = np.zeros(n * n, bool)
+    grid[cand] = values
+    return grid
+
+
+def _on_region(m: ImageMapping, pos: np.ndarray) -> ImageMapping:
+    """The mapping at the computation points ``pos`` (indices into the candidate points),
+    float32: that halves the memory traffic of the per-iteration compensation, and positions
+    keep ~1e-5 px precision on a 200 px stamp."""
+    f32 = [np.ascontiguousarray(a[pos], dtype=np.float32)
+           for a in (m.x_px, m.y_px, m.jxx, m.jxy, m.jyx, m.jyy)]
+    return ImageMapping(m.side, *f32, m.transmitted[pos], m.c_px_per_nm, m.fit_rms_px)
+
+
+def _signal_weight(n: int, region: np.ndarray, mask_in: np.ndarray, mask_ex: np.ndarray,
+                   algo: AlgorithmConfig) -> np.ndarray:
+    """1 where the difference image is used, 0 where only one image is transmitted and over
+    a guard band around those places (float32, on the computation points).
+
+    The blurred edge of the image that stops there reaches a couple of pixels into the
+    common pupil, where the other image is still bright: paper §3.4's common mask, made
+    robust to edge blur.  Edges the two pupils share keep their signal.
+    """
+    only_one = np.zeros(n * n, bool)
+    only_one[region] = mask_in ^ mask_ex
+    guard = int(np.ceil((2.0 + 2.0 * algo.smooth_sigma_px) * algo.oversample))
+    near = _dilate(only_one.reshape(n, n), guard)
+    return np.where(near.ravel()[region], 0.0, 1.0).astype(np.float32)
+
+
+def _make_solver(algo: AlgorithmConfig, shape: tuple[int, int], spacing: float,
+                 region: np.ndarray, basis: ZernikeBasis, common: np.ndarray,
+                 mappings: tuple[ImageMapping, ImageMapping], kappa: float,
+                 weight: np.ndarray) -> SeriesExpansion | IterativeFFT | LeastSquares:
+    """The configured TIE solver (:mod:`.tie`): the paper's series expansion (§2.2) or
+    iterative FFT (§2.1), or the least-squares fit on the annular basis."""
+    if algo.solver == "exp":
+        return SeriesExpansion(basis, common)
+    if algo.solver == "fft":
+        return IterativeFFT(shape, spacing, region, basis, common, algo.inner_iterations)
+    return LeastSquares(shape, spacing, region, basis, common,
+                        algo.edge_sigma_px * algo.oversample, mappings=mappings,
+                        kappa=kappa, weight=weight)
+
+
+def _outer_radius_px(m_in: ImageMapping, m_ex: ImageMapping) -> float:
+    """Radius of the circle around the flux centroid that holds the whole donut, the larger
+    of the two (off axis the donut is neither centred on the chief ray nor round)."""
+    return float(max(np.hypot(m.x_px[m.transmitted] - m.x_px[m.transmitted].mean(),
+                              m.y_px[m.transmitted] - m.y_px[m.transmitted].mean()).max()
+                     for m in (m_in, m_ex)))
+
+
+def _mean_gradient(basis: ZernikeBasis, mask: np.ndarray) -> np.ndarray:
+    """(2, jmax): mean over the pupil of dZ_j/dx and dZ_j/dy, which moves the centroid."""
+    w = mask.astype(np.float32) / max(int(mask.sum()), 1)
+    return np.stack([basis.dx @ w, basis.dy @ w]).astype(float)
+
+
+def _model_centroid(m: ImageMapping) -> np.ndarray:
+    """(x, y) px of the flux centroid of the illuminated pupil under the mapping, W = 0."""
+    return np.array([float(m.x_px[m.transmitted].mean()),
+                     float(m.y_px[m.transmitted].mean())])
 
 
 # -- result -------------------------------------------------------------------------------
@@ -602,7 +649,8 @@ class WavefrontResult:
     departure_all_nm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def __repr__(self) -> str:
-        # One line; the arrays are in the attributes (the dataclass repr was ~6000 chars).
+        # One line; the arrays are in the attributes (the default dataclass repr would be
+        # ~6000 characters).
         dep = self.zernikes_nm - self.intrinsic_nm
         flags = [n for n, on in (("caustic", self.caustic), ("not settled", not self.converged))
                  if on]
@@ -661,6 +709,12 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
                        **algorithm: Any) -> WavefrontResult:
     """Estimate the wavefront from an intra/extra-focal donut pair (paper Fig. 3).
 
+    The steps are those of the paper's block diagram: check the inputs
+    (:meth:`EstimateConfig.from_options`), prepare the two donuts (:func:`_prepare_donuts`,
+    :func:`_loop_inputs`), run the outer loop of compensation, TIE solve and update
+    (:func:`_outer_loop`, §2.1), and report the total wavefront at the mid-point field
+    (:func:`_result`, §3.4).
+
     Args:
         intra: image at negative detector offset, ``[row=y, col=x]`` in the focal-plane frame
             of the field angles (as batoid renders it).
@@ -671,7 +725,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         wavelength_nm: wavelength; defaults to the band's effective wavelength.
         defocal_offset_mm: |detector offset|; defaults to the instrument's.
         solver: ``"lsq"`` (least squares, the default: the smallest error in every measured
-            case, README, Accuracy), or the paper's ``"exp"`` (series expansion) and
+            case, docs/accuracy.md), or the paper's ``"exp"`` (series expansion) and
             ``"fft"`` (iterative FFT), kept to reproduce its figures.
         saturation_level: pixel value (input units) at which the detector saturates;
             defaults to the instrument's ``saturation_level`` (None: unknown, and only the
@@ -682,12 +736,12 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
             ramp-up protects a start from zero against caustics) with the configured
             ``warm_start_gain``, and stops on convergence as usual.  Converged, the result
             does not depend on the start: the loop's fixed point is where the compensated
-            images agree (README, Frames).
+            images agree (docs/accuracy.md, Frames).
         seeing_fwhm_arcsec: atmospheric seeing (FWHM, arcsec) of the images, e.g. from the
             observatory's seeing monitor.  Where the solver's ``blur_reference`` is on
             (exp, lsq), the edge signal of the images' blur (the seeing, the pixels and the
             smoothing) is predicted and taken out of the difference image (:mod:`.blur`;
-            README, Accuracy).  0: no seeing given, no such correction.
+            docs/accuracy.md).  0: no seeing given, no such correction.
         **algorithm: overrides of ``config/algorithm.yaml``: the solver's (outer_iterations,
             feedback_gain, compensation_sequence, boundary_px, oversample, jmax,
             tolerance_nm, inner_iterations, register_rim, feedback_basis, design_tile_deg)
@@ -703,59 +757,164 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         intra/extra pair ("swapped"); ConfigError for invalid parameters or configuration.
     """
     t0 = time.perf_counter()
-    inst = load_instrument(instrument)
-    checks = load_checks(**{k: algorithm.pop(k) for k in list(algorithm) if k in _CHECK_KEYS})
-    algo = load_algorithm(solver, **algorithm)
-    sat = inst.saturation_level if saturation_level is None else saturation_level
-    if sat is not None and not (isinstance(sat, (int, float)) and np.isfinite(sat)):
-        raise ConfigError(f"saturation_level must be a finite number or None, got {sat!r}")
-    seeing_fwhm_arcsec = check_seeing(seeing_fwhm_arcsec)
-    fi = _field(field_intra_deg, "field_intra_deg")
-    fe = _field(field_extra_deg, "field_extra_deg")
-    inst.check_field(fi, "field_intra_deg")
-    inst.check_field(fe, "field_extra_deg")
-    defocus = inst.defocal_offset_mm if defocal_offset_mm is None else float(defocal_offset_mm)
-    if not (np.isfinite(defocus) and 0 < defocus < 100):
-        raise ConfigError(f"defocal_offset_mm must be in (0, 100), got {defocal_offset_mm!r}")
-    if inst.mapping == "batoid" and band not in inst.band_wavelength_nm:
-        raise ConfigError(f"unknown band {band!r}; known: {sorted(inst.band_wavelength_nm)}")
-    wl = inst.wavelength_nm(band, wavelength_nm)
+    cfg = EstimateConfig.from_options(
+        field_intra_deg=field_intra_deg, field_extra_deg=field_extra_deg,
+        instrument=instrument, band=band, wavelength_nm=wavelength_nm,
+        defocal_offset_mm=defocal_offset_mm, solver=solver,
+        saturation_level=saturation_level, seeing_fwhm_arcsec=seeing_fwhm_arcsec,
+        **algorithm)
+    a_in, a_ex = _check_pair_shapes(intra, extra)
+    geom, geom_time_s = _geometry(cfg)
+    donuts, swap = _prepare_donuts(a_in, a_ex, cfg, geom)
+    loop = _outer_loop(geom, _loop_inputs(donuts, cfg, geom), cfg.algorithm, initial_nm)
+    return _result(cfg, geom, donuts, swap, loop,
+                   wall_time_s=time.perf_counter() - t0, geometry_time_s=geom_time_s)
+
+
+# -- step 1: check the inputs -----------------------------------------------------------
+
+@dataclass(frozen=True)
+class EstimateConfig:
+    """Everything one estimate depends on besides the two images, checked (Fig. 3, input).
+
+    Attributes:
+        instrument: the loaded instrument model.
+        band, wavelength_nm: the optical band and the wavelength used in it.
+        field_intra_deg, field_extra_deg: the two stars' field angles (x, y), deg.
+        defocal_offset_mm: |detector offset| of both images.
+        saturation_level: pixel value at which the detector saturates (None: unknown).
+        seeing_fwhm_arcsec: the images' seeing (0: none given).
+        algorithm: the outer loop's and solver's parameters.
+        checks: the input checks' parameters.
+    """
+
+    instrument: Instrument
+    band: str
+    wavelength_nm: float
+    field_intra_deg: tuple[float, float]
+    field_extra_deg: tuple[float, float]
+    defocal_offset_mm: float
+    saturation_level: float | None
+    seeing_fwhm_arcsec: float
+    algorithm: AlgorithmConfig
+    checks: CheckConfig
+
+    @classmethod
+    def from_options(cls, *, field_intra_deg: Any, field_extra_deg: Any,
+                     instrument: str | Instrument = "lsst", band: str = "r",
+                     wavelength_nm: float | None = None,
+                     defocal_offset_mm: float | None = None, solver: str = "lsq",
+                     saturation_level: float | None = None,
+                     seeing_fwhm_arcsec: float = 0.0, **algorithm: Any) -> EstimateConfig:
+        """The options of :func:`estimate_wavefront`, checked in a fixed order; ConfigError
+        names the first one that is invalid.  ``algorithm`` holds overrides of both the
+        solver's parameters and the input checks'."""
+        inst = load_instrument(instrument)
+        checks = load_checks(**{k: algorithm.pop(k) for k in list(algorithm)
+                                if k in _CHECK_KEYS})
+        algo = load_algorithm(solver, **algorithm)
+        sat = inst.saturation_level if saturation_level is None else saturation_level
+        if sat is not None and not (isinstance(sat, (int, float)) and np.isfinite(sat)):
+            raise ConfigError(f"saturation_level must be a finite number or None, got {sat!r}")
+        seeing = check_seeing(seeing_fwhm_arcsec)
+        fi = _field(field_intra_deg, "field_intra_deg")
+        fe = _field(field_extra_deg, "field_extra_deg")
+        inst.check_field(fi, "field_intra_deg")
+        inst.check_field(fe, "field_extra_deg")
+        defocus = (inst.defocal_offset_mm if defocal_offset_mm is None
+                   else float(defocal_offset_mm))
+        if not (np.isfinite(defocus) and 0 < defocus < 100):
+            raise ConfigError(f"defocal_offset_mm must be in (0, 100), got "
+                              f"{defocal_offset_mm!r}")
+        if inst.mapping == "batoid" and band not in inst.band_wavelength_nm:
+            raise ConfigError(f"unknown band {band!r}; known: {sorted(inst.band_wavelength_nm)}")
+        wl = inst.wavelength_nm(band, wavelength_nm)
+        return cls(inst, band, wl, fi, fe, defocus, sat, seeing, algo, checks)
+
+
+def _check_pair_shapes(intra: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two images as arrays; the TIE signal (§2.1: their difference) needs them the
+    same shape."""
     a_in, a_ex = np.asarray(intra), np.asarray(extra)
     if a_in.shape != a_ex.shape:
         raise ShapeMismatchError(
             f"intra and extra images differ in shape: {a_in.shape} vs {a_ex.shape}"
         )
+    return a_in, a_ex
 
+
+# -- step 2: prepare the donuts ---------------------------------------------------------
+
+def _geometry(cfg: EstimateConfig) -> tuple[PairGeometry, float]:
+    """The pair's geometry (:func:`pair_geometry`, cached) and the time spent building it
+    in this call (0 when it came from the cache)."""
     hits = pair_geometry.cache_info().hits
-    geom = pair_geometry(inst, band, wl, fi, fe, defocus, algo)
-    geom_time = 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
+    geom = pair_geometry(cfg.instrument, cfg.band, cfg.wavelength_nm, cfg.field_intra_deg,
+                         cfg.field_extra_deg, cfg.defocal_offset_mm, cfg.algorithm)
+    return geom, 0.0 if pair_geometry.cache_info().hits > hits else geom.build_time_s
 
-    # The donut plus its blurred edge must lie inside the stamp; the computation region may
-    # extend beyond it (samples outside a stamp read zero flux, which is what is there).
-    margin = 2.0 + algo.smooth_sigma_px
-    don_in = prepare_donut(a_in, name="intra", outer_radius_px=geom.outer_radius_px,
-                           margin_px=margin, saturation_level=sat, checks=checks)
-    don_ex = prepare_donut(a_ex, name="extra", outer_radius_px=geom.outer_radius_px,
-                           margin_px=margin, saturation_level=sat, checks=checks)
-    # Off axis the vignetting tells which image is which: an exchanged pair gives a wrong
-    # wavefront with no other sign of trouble (see cwfs_ros.wfs.checks).
+
+def _prepare_donuts(a_in: np.ndarray, a_ex: np.ndarray, cfg: EstimateConfig,
+                    geom: PairGeometry) -> tuple[tuple[PreparedDonut, PreparedDonut],
+                                                 SwapScore | None]:
+    """Both stamps checked and measured (:func:`.donuts.prepare_donut`), and the pair
+    checked for exchanged images.
+
+    The donut plus its blurred edge must lie inside the stamp; the computation region may
+    extend beyond it (samples outside a stamp read zero flux, which is what is there).  Off
+    axis the vignetting (§3.3) tells which image is which: an exchanged pair gives a wrong
+    wavefront with no other sign of trouble (:mod:`.checks`).  Returns the two prepared
+    donuts and the swap check's outcome (None when it did not run).
+    """
+    margin_px = 2.0 + cfg.algorithm.smooth_sigma_px
+    don_in, don_ex = (prepare_donut(a, name=name, outer_radius_px=geom.outer_radius_px,
+                                    margin_px=margin_px, saturation_level=cfg.saturation_level,
+                                    checks=cfg.checks)
+                      for a, name in ((a_in, "intra"), (a_ex, "extra")))
     swap = None
-    if checks.swap_check and geom.footprints is not None:
+    if cfg.checks.swap_check and geom.footprints is not None:
         swap = check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy,
                                  don_ex.centroid_xy, (don_in.noise, don_ex.noise),
-                                 geom.footprints, checks)
-    # Align each image so that its centroid falls where the mapping, with the current
-    # wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves that
-    # centroid by C * mean(grad W) over the pupil, which is not zero for coma, nor for any
-    # term on a vignetted pupil, and differs between the two halves of a split sensor.
-    # Tip/tilt itself then has no effect; it is solved for as a nuisance term and dropped.
-    m_in, m_ex = geom.mapping_intra, geom.mapping_extra
+                                 geom.footprints, cfg.checks)
+    return (don_in, don_ex), swap
+
+
+@dataclass(frozen=True)
+class _LoopInputs:
+    """What the outer loop reads of the two images (Fig. 3, box a).
+
+    Attributes:
+        images: the intra and extra stamps, smoothed, float32.
+        base_xy: each image's flux centroid less the mapping's model centroid for W = 0
+            (px): where the mapping's reference point falls in the stamp.
+        blur_ref: the edge signal of the images' blur in the weighted difference image
+            (:mod:`.blur`), or None.
+    """
+
+    images: tuple[np.ndarray, np.ndarray]
+    base_xy: tuple[np.ndarray, np.ndarray]
+    blur_ref: np.ndarray | None
+
+
+def _loop_inputs(donuts: tuple[PreparedDonut, PreparedDonut], cfg: EstimateConfig,
+                 geom: PairGeometry) -> _LoopInputs:
+    """Smoothed images, their alignment to the mappings, and the blur's edge signal.
+
+    Alignment: each image is placed so that its centroid falls where the mapping, with the
+    current wavefront, puts the flux centroid of its illuminated pupil.  The wavefront moves
+    that centroid by C * mean(grad W) over the pupil (§2.1: x' = x + C dW/dx), which is not
+    zero for coma, nor for any term on a vignetted pupil, and differs between the two halves
+    of a split sensor (§3.4).  Tip/tilt itself then has no effect; it is solved for as a
+    nuisance term and dropped.
+
+    Smoothing: a light Gaussian blur makes the images smooth on the scale of the pupil
+    sampling, so that point-sampling them (compensation) integrates flux without a
+    dependence on where the samples fall inside pixels (unblurred: up to 13 nm of Z4).
+    """
+    algo = cfg.algorithm
+    don_in, don_ex = donuts
     base_in = np.array(don_in.centroid_xy) - geom.centroid_model_intra
     base_ex = np.array(don_ex.centroid_xy) - geom.centroid_model_extra
-
-    # A light Gaussian blur makes the images smooth on the scale of the pupil sampling, so
-    # that point-sampling them (compensation) integrates flux without a dependence on where
-    # the samples fall inside pixels; unblurred, that aliasing biased Z4 by ~13 nm.
     img_in, img_ex = don_in.image, don_ex.image
     if algo.smooth_sigma_px > 0:
         img_in = gaussian_filter(img_in, algo.smooth_sigma_px, mode="constant")
@@ -763,15 +922,49 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
     img_in = img_in.astype(np.float32)
     img_ex = img_ex.astype(np.float32)
     blur_ref = None
-    if algo.blur_reference and seeing_fwhm_arcsec > 0:
+    if algo.blur_reference and cfg.seeing_fwhm_arcsec > 0:
         # The images' blur beyond the pixels: the seeing and the smoothing above.  Without a
-        # seeing (0: none given) the loop is the one every figure before the seeing input
-        # was measured with: the model of the pixels and the smoothing alone moved FAM's
-        # worst term from 21.4 to 25.1 nm (README, Accuracy).
-        blur_px = image_blur_sigma_px(seeing_fwhm_arcsec, algo.smooth_sigma_px,
+        # seeing (0: none given) no blur model is subtracted (docs/accuracy.md).
+        inst = cfg.instrument
+        blur_px = image_blur_sigma_px(cfg.seeing_fwhm_arcsec, algo.smooth_sigma_px,
                                       inst.pixel_size_um, inst.focal_length_m)
         blur_ref = geom.blur_reference(blur_px, img_in.shape)
+    return _LoopInputs((img_in, img_ex), (base_in, base_ex), blur_ref)
 
+
+# -- step 3: the outer loop (§2.1, Fig. 3 boxes a-e) ------------------------------------
+
+@dataclass(frozen=True)
+class _LoopOutcome:
+    """The outer loop's result.
+
+    Attributes:
+        estimate: departure from design Z1..Z_jmax (nm) after the last good iteration
+            (zeros if the first compensation already folded).
+        history: the estimate after each iteration.
+        residual_rms: rms over Z4..Z_jmax of each iteration's residual (nm).
+        caustic: the compensation folded into caustic; ``estimate`` is the last good one.
+        converged: the last update fell below the tolerance before the iteration limit.
+        compensated: the last good compensated (intra, extra) intensities, or None.
+    """
+
+    estimate: np.ndarray
+    history: list[np.ndarray]
+    residual_rms: list[float]
+    caustic: bool
+    converged: bool
+    compensated: tuple[np.ndarray, np.ndarray] | None
+
+
+def _loop_start(algo: AlgorithmConfig, initial_nm: np.ndarray | None
+                ) -> tuple[np.ndarray, list[int], float]:
+    """(W_comp, schedule, gain) of the outer loop's first iteration.
+
+    From zero (§2.1): the compensation schedule ramps up the highest compensated Noll index
+    (4, 4, 6, 6, 13, ...) with the feedback gain.  Warm started from ``initial_nm``: the full
+    jmax from the first iteration with ``warm_start_gain``, as the start is already near the
+    fixed point.  Piston, tip and tilt are never compensated.
+    """
     jmax = algo.jmax
     w_comp = np.zeros(jmax)
     schedule = algo.schedule()
@@ -784,93 +977,166 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         w_comp[:3] = 0.0
         schedule = [jmax] * algo.outer_iterations
         gain = algo.warm_start_gain
+    return w_comp, schedule, gain
+
+
+def _outer_loop(geom: PairGeometry, inputs: _LoopInputs, algo: AlgorithmConfig,
+                initial_nm: np.ndarray | None) -> _LoopOutcome:
+    """The outer loop of Fig. 3 (§2.1): compensate both images for W_comp (box b), solve the
+    TIE for the residual (box c), take ``W_comp + W_res`` as the estimate, and feed back
+    ``gain * W_res`` up to the schedule's Noll index (boxes d-e).
+
+    Stops when the full jmax is compensated, the residual rms is below ``tolerance_nm`` and
+    the rim registration no longer moves the images; or, keeping the last good estimate,
+    when a compensation folds into caustic (§2.1).
+    """
+    w_comp, schedule, gain = _loop_start(algo, initial_nm)
+    base_xy = inputs.base_xy
     estimate = w_comp.copy()
     history: list[np.ndarray] = []
     res_rms: list[float] = []
-    caustic = False
-    converged = False
+    caustic = converged = False
     last = None
-    idx = np.arange(1, jmax + 1)
     for j_stage in schedule:
-        derivs = geom.basis.derivative_fields(w_comp)
-        centre_in = base_in - m_in.c_px_per_nm * (geom.mean_gradient_intra @ w_comp)
-        centre_ex = base_ex - m_ex.c_px_per_nm * (geom.mean_gradient_extra @ w_comp)
-        c_in = compensate(img_in, centre_in, m_in, derivs)
-        c_ex = compensate(img_ex, centre_ex, m_ex, derivs)
+        c_in, c_ex = _compensate_pair(geom, inputs.images, base_xy, w_comp)
         if c_in.caustic or c_ex.caustic:
-            # Rays cross before the image plane: keep the last good estimate (§2.1).
             caustic = True
             break
         last = (c_in.intensity, c_ex.intensity)
-        shift_px = 0.0
-        if geom.rim_pinv is not None:
-            # Pupil registration on the rim (see _rim_registration), applied from the next
-            # iteration on: move each image by the mapping's Jacobian times the pupil shift.
-            rim = 0.5 * (c_in.intensity[geom.rim_index] + c_ex.intensity[geom.rim_index])
-            level, ax, ay = (geom.rim_pinv @ rim).astype(float)
-            if level > 0.2:
-                shift = np.array([ax, ay]) / level
-                base_in = base_in + geom.jac_mean_intra @ shift
-                base_ex = base_ex + geom.jac_mean_extra @ shift
-                shift_px = float(np.abs(geom.jac_mean_intra @ shift).max())
-        d_i = (c_in.intensity - c_ex.intensity) * geom.weight
-        if blur_ref is not None:
-            d_i -= blur_ref  # what the blur alone puts there (cwfs_ros.wfs.blur)
-        w_res = geom.solver.solve(d_i, geom.kappa)
-        w_res[:3] = 0.0  # piston has no signal; tip/tilt is taken out by the alignment
+        base_xy, shift_px = _register_on_rim(geom, c_in.intensity, c_ex.intensity, base_xy)
+        w_res = _solve_residual(geom, c_in.intensity, c_ex.intensity, inputs.blur_ref)
         estimate = w_comp + w_res
         history.append(estimate.copy())
         rms = float(np.sqrt(np.mean(w_res[3:] ** 2)))
         res_rms.append(rms)
-        if j_stage >= jmax and rms < algo.tolerance_nm and shift_px < 0.01:
+        if j_stage >= algo.jmax and rms < algo.tolerance_nm and shift_px < 0.01:
             converged = True
             break
-        if geom.feedback_l is None:
-            step = np.where(idx <= j_stage, w_res, 0.0)
-        else:
-            # Truncate in the basis orthonormal on the vignetted pupil (u = L^T w); L^T is
-            # upper triangular, so the step stays within Z1..Z_{j_stage}.
-            u = geom.feedback_l.T @ w_res
-            u[idx > j_stage] = 0.0
-            step = solve_triangular(geom.feedback_l.T, u, lower=False)
-        w_comp = w_comp + gain * step
+        w_comp = w_comp + gain * _feedback_step(geom, w_res, j_stage)
         w_comp[:3] = 0.0
     if not history:
         # Caustic already at the first compensation: nothing trustworthy was estimated.
-        estimate = np.zeros(jmax)
-    total = estimate + np.asarray(geom.intrinsic_nm)
+        estimate = np.zeros(algo.jmax)
+    return _LoopOutcome(estimate, history, res_rms, caustic, converged, last)
+
+
+def _compensate_pair(geom: PairGeometry, images: tuple[np.ndarray, np.ndarray],
+                     base_xy: tuple[np.ndarray, np.ndarray], w_comp: np.ndarray
+                     ) -> tuple[Compensated, Compensated]:
+    """Both images remapped to the pupil for the wavefront ``w_comp`` (§2.1: the
+    mapping x' = x + C grad W and its Jacobian; Fig. 3 box b).
+
+    Each image's reference point moves with the centroid shift the compensated wavefront
+    causes (``C * mean(grad W)``, see :func:`_loop_inputs`).
+    """
+    derivs = geom.basis.derivative_fields(w_comp)
+    m_in, m_ex = geom.mapping_intra, geom.mapping_extra
+    centre_in = base_xy[0] - m_in.c_px_per_nm * (geom.mean_gradient_intra @ w_comp)
+    centre_ex = base_xy[1] - m_ex.c_px_per_nm * (geom.mean_gradient_extra @ w_comp)
+    return (compensate(images[0], centre_in, m_in, derivs),
+            compensate(images[1], centre_ex, m_ex, derivs))
+
+
+def _register_on_rim(geom: PairGeometry, i_in: np.ndarray, i_ex: np.ndarray,
+                     base_xy: tuple[np.ndarray, np.ndarray]
+                     ) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """Pupil registration on the primary's outer rim (beyond the paper; see
+    :func:`_rim_registration`): the pupil shift measured on the mean compensated image,
+    undone from the next iteration on by moving each image by its mapping's mean Jacobian
+    times the shift.  Returns the new reference points and the largest image move (px; 0
+    when there is no rim band or too little light on it)."""
+    if geom.rim_pinv is None:
+        return base_xy, 0.0
+    rim = 0.5 * (i_in[geom.rim_index] + i_ex[geom.rim_index])
+    level, ax, ay = (geom.rim_pinv @ rim).astype(float)
+    if level <= 0.2:
+        return base_xy, 0.0
+    shift = np.array([ax, ay]) / level
+    moved = (base_xy[0] + geom.jac_mean_intra @ shift, base_xy[1] + geom.jac_mean_extra @ shift)
+    return moved, float(np.abs(geom.jac_mean_intra @ shift).max())
+
+
+def _solve_residual(geom: PairGeometry, i_in: np.ndarray, i_ex: np.ndarray,
+                    blur_ref: np.ndarray | None) -> np.ndarray:
+    """The residual wavefront Z1..Z_jmax (nm) of the compensated images (box c): the TIE
+    (§2, eq. 1) solved for the weighted difference image (§2.1's signal, on the common pupil
+    of §3.4) less the blur's own edge signal.  Piston has no signal, and tip/tilt is taken
+    out by the alignment: both are set to zero."""
+    d_i = (i_in - i_ex) * geom.weight
+    if blur_ref is not None:
+        d_i -= blur_ref
+    w_res = geom.solver.solve(d_i, geom.kappa)
+    w_res[:3] = 0.0
+    return w_res
+
+
+def _feedback_step(geom: PairGeometry, w_res: np.ndarray, j_stage: int) -> np.ndarray:
+    """The residual truncated to Noll indices <= ``j_stage`` (§2.1: low orders first, to
+    decouple terms of the same azimuthal frequency).
+
+    With the orthonormal feedback basis the truncation is made in the basis orthonormal on
+    the vignetted common pupil (§3.3): ``u = L^T w``; L^T is upper triangular, so the step
+    stays within Z1..Z_{j_stage}.
+    """
+    idx = np.arange(1, w_res.size + 1)
+    if geom.feedback_l is None:
+        return np.where(idx <= j_stage, w_res, 0.0)
+    u = geom.feedback_l.T @ w_res
+    u[idx > j_stage] = 0.0
+    return solve_triangular(geom.feedback_l.T, u, lower=False)
+
+
+# -- step 4: the result (§3.4: the design wavefront added back) -------------------------
+
+def _swap_outcome(swap: SwapScore | None, checks: CheckConfig) -> str:
+    """``"off"``, ``"confirmed"`` or ``"inconclusive"`` (see :attr:`WavefrontResult.swap_check`)."""
+    if swap is None:
+        return "off"
+    if (swap.preference[1] > checks.swap_threshold
+            and swap.significance[1] > checks.swap_min_significance):
+        return "confirmed"
+    return "inconclusive"
+
+
+def _result(cfg: EstimateConfig, geom: PairGeometry,
+            donuts: tuple[PreparedDonut, PreparedDonut], swap: SwapScore | None,
+            loop: _LoopOutcome, *, wall_time_s: float,
+            geometry_time_s: float) -> WavefrontResult:
+    """The total wavefront at the mid-point field: the loop's departure from design plus the
+    design wavefront there (§3.3-3.4), with the masks and compensated images for display."""
+    jmax = cfg.algorithm.jmax
+    total = loop.estimate + np.asarray(geom.intrinsic_nm)
     total[:3] = 0.0
     comp = {}
-    if last is not None:
-        comp = {"intra": geom.pupil_image(last[0]), "extra": geom.pupil_image(last[1])}
+    if loop.compensated is not None:
+        comp = {"intra": geom.pupil_image(loop.compensated[0]),
+                "extra": geom.pupil_image(loop.compensated[1])}
     masks = {
         "intra": geom.pupil_image(geom.mask_intra.astype(float), 0.0) > 0,
         "extra": geom.pupil_image(geom.mask_extra.astype(float), 0.0) > 0,
         "common": geom.pupil_image(geom.mask_common.astype(float), 0.0) > 0,
         "region": geom.pupil_image(np.ones(geom.region.size), 0.0) > 0,
     }
+    n_iter = len(loop.history)
     return WavefrontResult(
         zernikes_nm=total[3:22].copy(),
         zernikes_all_nm=total,
         intrinsic_nm=np.asarray(geom.intrinsic_nm)[3:22].copy(),
-        caustic=caustic,
-        converged=converged,
-        iterations=len(history),
-        history_nm=np.array(history).reshape(len(history), jmax),
-        residual_rms_nm=np.array(res_rms),
+        caustic=loop.caustic,
+        converged=loop.converged,
+        iterations=n_iter,
+        history_nm=np.array(loop.history).reshape(n_iter, jmax),
+        residual_rms_nm=np.array(loop.residual_rms),
         field_deg=geom.field_mid_deg,
-        wall_time_s=time.perf_counter() - t0,
-        geometry_time_s=geom_time,
-        solver=algo.solver,
-        instrument=inst.name,
-        band=band,
-        wavelength_nm=wl,
+        wall_time_s=wall_time_s,
+        geometry_time_s=geometry_time_s,
+        solver=cfg.algorithm.solver,
+        instrument=cfg.instrument.name,
+        band=cfg.band,
+        wavelength_nm=cfg.wavelength_nm,
         masks=masks,
         compensated=comp,
-        inputs={"intra": don_in, "extra": don_ex},
-        departure_all_nm=np.concatenate([[0.0, 0.0, 0.0], estimate[3:]]),
-        swap_check=("off" if swap is None else
-                    "confirmed" if (swap.preference[1] > checks.swap_threshold
-                                    and swap.significance[1] > checks.swap_min_significance)
-                    else "inconclusive"),
+        inputs={"intra": donuts[0], "extra": donuts[1]},
+        departure_all_nm=np.concatenate([[0.0, 0.0, 0.0], loop.estimate[3:]]),
+        swap_check=_swap_outcome(swap, cfg.checks),
     )

@@ -4,7 +4,7 @@ Text images are those of the ZEMAX reference set (bxin/cwfs): one row per line, 
 row 0 at the top of the picture.  The reference code flips them vertically on reading; after
 that flip they are in the focal-plane frame ``[row=y, col=x]`` used throughout this package
 (checked by forward-modelling all eight re-orientations of the FAM set; see
-``docs``/README), so :func:`read_image` applies the same flip to ``.txt`` files.
+docs/cli.md), so :func:`read_image` applies the same flip to ``.txt`` files.
 """
 
 from __future__ import annotations

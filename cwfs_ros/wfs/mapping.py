@@ -23,7 +23,7 @@ unperturbed system and is what differs between models:
   No design wavefront is added back: the estimate is whatever wavefront the tables' ray
   hits do not already hold.  For the FAM tables (``lsstfam``) that is the total wavefront
   (their hits hold no design aberration: the FAM estimates match the ZEMAX truth of the
-  nominal design, README), as it is for the reference code's output on the 1-mm pair.
+  nominal design, docs/accuracy.md), as it is for the reference code's output on the 1-mm pair.
 
 All positions are in pixels, in the focal-plane frame of the field angles (``[row=y, col=x]``
 images), relative to a reference point (the chief ray for batoid, the pupil centre's image
@@ -212,7 +212,7 @@ class _FitOperator:
     The fit basis (circle Zernikes to ``_FIT_ORDER`` over the points' bounding radius), its
     derivatives, and the least-squares operator of the regular fit subset depend only on the
     pupil points, not on the field: a new field then costs one ray trace and a few small
-    matrix products (README, Speed).  The operator assumes every traced ray succeeded; a
+    matrix products (docs/performance.md).  The operator assumes every traced ray succeeded; a
     trace with failed rays falls back to a direct least-squares solve on its own subset.
     """
 
@@ -660,7 +660,7 @@ def _vignetting_in_tile(inst: Instrument, side: str, defocus_mm: float, x: np.nd
     _EDGE_TRACE_M of an edge are traced (all of them when the tile has no edge model).  The
     masks are those of the direct trace (test_geometry_speed, and 190 random corner fields
     in bench/bench_vignetting_tiles.py); a side costs ~0.3 ms instead of ~5 ms of tracing
-    at the LSST corners on the machine of README Frames.
+    at the LSST corners on the machine of docs/performance.md, Frames.
     """
     transmitted = always.copy()
     if sweep.size == 0:

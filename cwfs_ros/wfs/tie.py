@@ -203,6 +203,33 @@ def _region_neighbours(shape: tuple[int, int], region: np.ndarray
     return lut[p - 1], lut[p + 1], lut[p - w], lut[p + w]
 
 
+def _flux_factors(i0: np.ndarray, mappings: tuple | None, kappa: float | None
+                  ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """(cxx, cxy, cyx, cyy) float32 per point: the model intensity ``I`` times the factors
+    of ``grad Z`` in the flux displacement ``I u`` whose divergence is the response (eq. 14).
+
+    Paraxial (``mappings`` None) ``u = grad Z``: isotropic, no cross terms (None).  Off axis
+    each image's samples move in the pupil by ``v = C A^-1 grad Z`` when the wavefront
+    changes (A: that image's mapping Jacobian, anisotropic), and the difference image
+    changes by ``div(I (v_intra - v_extra))``; the factors are summed over both images
+    first (one pass over the (jmax, n) arrays instead of four).
+    """
+    f32 = np.float32
+    if mappings is None:
+        c = i0.astype(f32)
+        return c, None, None, c
+    m = i0.size
+    axx, axy, ayx, ayy = (np.zeros(m) for _ in range(4))
+    for mp, sign in zip(mappings, (1.0, -1.0), strict=True):
+        c = (mp.c_px_per_nm * sign / kappa) / mp.det.astype(float)
+        axx += c * mp.jyy
+        axy -= c * mp.jxy
+        ayx -= c * mp.jyx
+        ayy += c * mp.jxx
+    cxx, cxy, cyx, cyy = ((i0 * a).astype(f32) for a in (axx, axy, ayx, ayy))
+    return cxx, cxy, cyx, cyy
+
+
 def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
                     basis: ZernikeBasis, pupil: np.ndarray, edge_sigma: float = 1.0,
                     mappings: tuple | None = None, kappa: float | None = None,
@@ -233,24 +260,7 @@ def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
     zx, zy = basis.dx[1:], basis.dy[1:]
     if zx.dtype != f32:
         zx, zy = zx.astype(f32), zy.astype(f32)
-    if mappings is None:
-        # Isotropic response (paraxial): B_j = div(I grad Z_j).
-        cxx = cyy = i0.astype(f32)
-        cxy = cyx = None
-    else:
-        # Each image's samples move in the pupil by v = C A^-1 grad Z when the wavefront
-        # changes (A: that image's mapping Jacobian, anisotropic off axis); the
-        # difference image then changes by div(I (v_intra - v_extra)).  The per-point
-        # factors of grad Z are summed over both images first (one pass over the
-        # (jmax, n) arrays instead of four).
-        axx, axy, ayx, ayy = (np.zeros(m) for _ in range(4))
-        for mp, sign in zip(mappings, (1.0, -1.0), strict=True):
-            c = (mp.c_px_per_nm * sign / kappa) / mp.det.astype(float)
-            axx += c * mp.jyy
-            axy -= c * mp.jxy
-            ayx -= c * mp.jyx
-            ayy += c * mp.jxx
-        cxx, cxy, cyx, cyy = ((i0 * a).astype(f32) for a in (axx, axy, ayx, ayy))
+    cxx, cxy, cyx, cyy = _flux_factors(i0, mappings, kappa)
     # I u on the region, plus one zero column standing for every point off it (the
     # divergence below gathers neighbours on the region itself).
     nj = jmax - 1
@@ -275,8 +285,8 @@ def response_matrix(shape: tuple[int, int], spacing: float, region: np.ndarray,
         # image where the estimator gives it no weight (the guard band where only one
         # image is transmitted), so the model response must be zero there too.  The
         # fixed point, B (w dI) = 0, is unchanged (w is 0 or 1); the Gram matrix is then
-        # the true one, without which modes with response in the guard band were
-        # under-corrected 5x and the loop converged at 0.88 per iteration (README).
+        # the true one: without the weight, modes with response in the guard band are
+        # under-corrected 5x and the loop contracts at only 0.88 per iteration (docs/design.md).
         b *= weight.astype(f32)
     return b
 
@@ -296,7 +306,7 @@ class LeastSquares:
     ``B`` is :func:`response_matrix`, zeroed with ``weight`` where the estimator zeroes the
     signal: a model with response there under-corrected the modes that have some, and
     their part of the loop converged at 0.88 per iteration, up to 27 nm short of the fixed
-    point after the configured 14 (README, Accuracy).
+    point after the configured 14 (docs/accuracy.md).
     """
 
     name = "lsq"
@@ -311,7 +321,7 @@ class LeastSquares:
         # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix: the small Gram matrix
         # inverted, then one float32 product; (B B^T)^-1 only sets how fast the loop
         # reaches its fixed point.  (In float64 with np.linalg.solve on the (jmax, n)
-        # right-hand side the set-up cost 13 ms a pair, now ~5 ms; README Frames.)
+        # right-hand side the set-up cost 13 ms a pair, now ~5 ms; docs/performance.md, Frames.)
         # The Gram matrix from the float32 B (single-precision BLAS, no float64 copy of B),
         # inverted in float64: its rounding, ~5e-8 of the largest element, moves the inverse
         # by ~6e-6 (condition ~5e4 at the corners), which again only sets the convergence
