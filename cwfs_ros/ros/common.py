@@ -399,7 +399,8 @@ class ManagedNode(LifecycleNode):
     Subclasses declare their parameters and the always-on parts (/diagnostics, parameter
     callbacks) in ``__init__``, and build everything else in :meth:`_configure_resources`
     (read the parameters, start workers, load state, create the topics), released again by
-    :meth:`_release_resources` on cleanup, shutdown, an error or ``destroy_node``. rclpy turns
+    :meth:`_release_resources` on cleanup, shutdown or an error (``destroy_node`` stops only the
+    worker processes, :meth:`_release_processes`; rclpy destroys the rest). rclpy turns
     an exception in a transition callback into a bare ERROR; here the exception of a failed
     configure is kept in :attr:`configure_error`, logged, and raised again by :meth:`start`,
     so that a node built and started in one go (``autostart``) fails with the reason, as a
@@ -419,6 +420,14 @@ class ManagedNode(LifecycleNode):
     def _release_resources(self) -> None:
         """Release what :meth:`_configure_resources` built (also after a partial build)."""
         raise NotImplementedError
+
+    def _release_processes(self) -> None:
+        """Stop what outlives the node's ROS entities (worker processes); default: nothing.
+
+        ``destroy_node`` calls only this: rclpy destroys the node's topics, timers and
+        services itself, after the executor has stopped, so none is destroyed while a
+        callback that is still finishing could use it.
+        """
 
     # ------------------------------------------------------------------ state
     @property
@@ -501,5 +510,9 @@ class ManagedNode(LifecycleNode):
                                  hardware_id=hardware_id)
 
     def destroy_node(self) -> None:
-        self._release_quietly()
+        self.configured = False
+        try:
+            self._release_processes()
+        except Exception as exc:  # noqa: BLE001 - destroying must go on
+            self.get_logger().error(f"releasing workers: {type(exc).__name__}: {exc}")
         super().destroy_node()

@@ -249,6 +249,9 @@ class WavefrontNode(ManagedNode):
             if pub is not None:
                 self.destroy_lifecycle_publisher(pub)
         self.pub_corner, self.pub_vector = {}, None
+        self._release_processes()
+
+    def _release_processes(self) -> None:
         pool, self.pool = self.pool, None
         if pool is not None:
             pool.shutdown(wait=False)
