@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -46,9 +47,9 @@ OVERLAY = {
     "wavefront_node": {"ros__parameters": {"visit_timeout_s": 60.0, "input_mode": "frames"}},
     "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0}},
     "camera_sim_node": {"ros__parameters": {
-        "visit_period_s": 0.0, "frames": True, "frame_rows": 1000, "frame_cols": 1000,
-        "frame_stars_min": 2, "frame_stars_max": 2, "frame_flux_min": 3e5,
-        "frame_flux_max": 3e5, "frame_blend": True, "frame_faint": False,
+        "visit_period_s": 0.0, "frames": True, "frame_rows": 800, "frame_cols": 800,
+        "frame_stars_min": 2, "frame_stars_max": 2, "frame_flux_min": 1e5,
+        "frame_flux_max": 1e5, "frame_blend": False, "frame_faint": False,
         "n_photons": 2e5, "perturbation_seed": 11, "perturbation_scale": 1.0,
         "render_seed": 5}},
 }
@@ -122,12 +123,14 @@ def frames_run(tmp_path_factory):
                                   "params_files": [overlay], "on_ready": on_ready},
                           daemon=True)
     th.start()
+    t0 = time.monotonic()
     try:
         assert ready.wait(30), "nodes did not start"
         out = _record(ctx, started, bag_dir)
     finally:
         ctx.try_shutdown()
         th.join(15)
+    t1 = time.monotonic()
     # `cwfs-ros replay` as a user runs it: a fresh process, no middleware.
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
@@ -136,7 +139,7 @@ def frames_run(tmp_path_factory):
                            "--no-progress", "--no-plots"],
                           capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stderr
-    print("\n" + proc.stdout)
+    print(f"\nlive run {t1 - t0:.1f} s, replay {time.monotonic() - t1:.1f} s\n{proc.stdout}")
     with open(tmp / "o" / "zernikes.csv", newline="") as f:
         out["zernikes"] = list(csv.DictReader(f))
     with open(tmp / "o" / "dof.csv", newline="") as f:
@@ -146,15 +149,15 @@ def frames_run(tmp_path_factory):
 
 
 def test_the_live_run_estimated_frames(frames_run):
-    """The live corners came from the frame job: several stars, pairs combined, the blend
-    rejected, every corner of both visits valid."""
+    """The live corners came from the frame job: two stars per frame detected, paired and
+    combined, every corner of both visits valid."""
     live = frames_run["live_corners"]
     assert frames_run["frame_pairs"] == VISITS * len(CORNERS)
-    assert set(frames_run["stars"].values()) == {4}  # 2 isolated + a blended pair
+    assert set(frames_run["stars"].values()) == {2}
     assert len(live) == VISITS * len(CORNERS)
     assert all(m.valid for m in live), [m.status for m in live if not m.valid]
     assert all(1 <= m.n_pairs <= 2 for m in live), [m.n_pairs for m in live]
-    assert all("blended" in m.status for m in live), [m.status for m in live]
+    assert sum(m.n_pairs for m in live) > len(live), "no corner combined two pairs"
 
 
 def test_replay_gives_the_live_corner_wavefronts(frames_run):
