@@ -26,7 +26,9 @@ reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
-The pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
+What happens to an image, a pair, an outcome and a timeout is decided by
+:class:`cwfs_ros.runtime.pipeline.WavefrontPipeline`, which the offline replay runs too; the
+pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
 
 A managed (lifecycle) node: the workers and topics exist from configure to cleanup; only an
 active node processes images (docs/ros.md, Managed nodes). /diagnostics is published in
