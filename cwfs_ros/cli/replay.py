@@ -4,10 +4,11 @@
 ``/aos/wfs/<corner>/<intra|extra>/image`` of a bag (:mod:`cwfs_ros.ros.bag`) in bag-timestamp
 order and runs, in this process, exactly what the live graph runs on them:
 
-* wavefront_node's path: :func:`cwfs_ros.runtime.visits.image_record_from_msg` decoding,
-  :class:`~cwfs_ros.runtime.visits.PairingBuffer` pairing, one
-  :func:`~cwfs_ros.runtime.corner_pool.run_corner_job` per pair (the function the node's worker
-  processes run), :class:`~cwfs_ros.runtime.visits.VisitAssembler` for the 76-vector;
+* wavefront_node's path: the node's own :class:`~cwfs_ros.runtime.pipeline.WavefrontPipeline`
+  (input guards, decoding, pairing, the stamp :class:`~cwfs_ros.runtime.corner_pool.CornerJob`
+  or, for frames, the :class:`~cwfs_ros.frames.selection.CornerFrameJob`, visit assembly and
+  timeouts), its jobs run inline by the functions the node's worker processes run
+  (:func:`~cwfs_ros.runtime.pipeline.run_job`);
 * ofc_node's path: the :class:`~cwfs_ros.ofc.control.OFCSolver` of
   :func:`~cwfs_ros.ofc.control.solver_from_params`, one ``step`` per vector (state kept
   between visits, not advanced for ``dry_run``);
@@ -213,23 +214,21 @@ class ReplayResult:
 
 # ----------------------------------------------------------------------------- replay
 class _Pipeline:
-    """wavefront_node + ofc_node, minus the middleware (see the module docstring)."""
+    """wavefront_node + ofc_node, minus the middleware (see the module docstring).
+
+    The wavefront side is the node's own :class:`~cwfs_ros.runtime.pipeline.WavefrontPipeline`
+    (guards, decoding, pairing, the stamp or frame job, conflicts, assembly, timeouts); the
+    jobs run here inline (:func:`~cwfs_ros.runtime.pipeline.run_job`) instead of in worker
+    processes, and what the node would publish is kept as rows.
+    """
 
     def __init__(self, wf: dict[str, Any], ofc: dict[str, Any]) -> None:
-        from cwfs_ros.runtime.visits import PairingBuffer, VisitAssembler, load_corner_fields
-        from cwfs_ros.wfs.orientation import Orientation
-        from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
+        from cwfs_ros.runtime.pipeline import WavefrontPipeline
 
-        self.settings = EstimatorSettings.from_params(lambda n: wf[n])
-        validate_settings(self.settings)
-        self.fields = load_corner_fields(wf["sensor_config"] or None)
-        self.orient = {(c, s): Orientation(int(wf[f"sensors.{c}.{s}.rot90"]),
-                                           str(wf[f"sensors.{c}.{s}.flip"]))
-                       for c in _CORNERS for s in _SIDES}
-        tol = int(round(float(wf["pairing_tolerance_s"]) * 1e9))
-        timeout = float(wf["visit_timeout_s"])
-        self.pairing = PairingBuffer(_CORNERS, tolerance_ns=tol, timeout_s=timeout)
-        self.assembler = VisitAssembler(tolerance_ns=tol, timeout_s=timeout)
+        # Every corner, whatever ``corners`` says: a bag may come from several processes.
+        self.wf = WavefrontPipeline(wf.__getitem__, _CORNERS, assemble=True)
+        self.settings = self.wf.settings
+        self.fields = self.wf.fields
         from cwfs_ros.ofc.params import controller_from_params
         from cwfs_ros.ofc.rotator import RotatorHistory
 
@@ -241,6 +240,7 @@ class _Pipeline:
         self.dofs: list[DofRow] = []
         self.rejections: list[str] = []
         self._visits: dict[int, int] = {}
+        self._now_s = 0.0
 
     def _visit(self, stamp_ns: int) -> int:
         if stamp_ns not in self._visits:
@@ -254,64 +254,62 @@ class _Pipeline:
         for c in _CORNERS:
             warm_corner(c, self.fields[c]["intra"], self.fields[c]["extra"], self.settings)
 
-    # -- the wavefront_node path
-    def image(self, msg: Any, corner: str, side: str, now_s: float) -> None:
-        from cwfs_ros.runtime.visits import image_record_from_msg
+    # -- the wavefront_node path (WavefrontNode._on_image and what follows it)
+    def image(self, msg: Any, corner: str, side: str, now_s: float, clock_ns: int) -> None:
+        """One recorded image, received at ``now_s`` (bag time, s; ``clock_ns`` in ns)."""
+        from cwfs_ros.runtime.pipeline import run_job
 
         self.expire(now_s)  # the node's 0.1 s timer would have run before this image
-        rec = image_record_from_msg(msg, corner, side, now_s)
-        if rec.error:
-            self.rejections.append(f"{side} image of {corner}: {rec.error}")
-        pair, rej = self.pairing.add(rec)
+        refused = self.wf.refusal(msg, corner, side, clock_ns)
+        if refused is not None:
+            self.rejections.append(refused.message)
+            return
+        rec, bad = self.wf.record(msg, corner, side, now_s)
+        if bad is not None:
+            self.rejections.append(bad.message)
+        step = self.wf.add_record(rec)
+        for r in step.dropped:
+            self._unpaired(r)
+        rej = step.rejection
         if rej is not None:
             self.rejections.append(rej.message)
-        if pair is not None:
-            self._pair(pair, now_s)
+            if rej.reason == "conflicting_images":
+                unpaired, vec = self.wf.conflict(rej)
+                if unpaired is not None:
+                    self._unpaired(unpaired, count=False)
+                if vec is not None:
+                    self._vector(vec)
+        if step.pair is not None:
+            self._outcome(run_job(self.wf.job_for(step.pair)))
 
-    def _pair(self, pair: Any, now_s: float) -> None:
-        from cwfs_ros.runtime.corner_pool import CornerJob, invalid_outcome, run_corner_job
+    def _unpaired(self, r: Any, assemble: bool = True, count: bool = True) -> None:
+        if count:
+            self.rejections.append(r.message)
+        self._outcome(self.wf.unpaired_outcome(r), assemble=assemble)
 
-        c = pair.corner
-        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
-        if pair.error is not None:
-            out = invalid_outcome(c, pair.stamp_ns, pair.reason, pair.error, fi, fe,
-                                  self.settings.solver)
-        else:
-            out = run_corner_job(CornerJob(c, pair.stamp_ns, pair.intra.image,
-                                           pair.extra.image, fi, fe, self.settings,
-                                           self.orient[(c, "intra")],
-                                           self.orient[(c, "extra")]))
-        self._outcome(out, now_s)
-
-    def _outcome(self, out: Any, now_s: float) -> None:
-        from cwfs_ros.runtime.visits import corner_entry_from_outcome
-
+    def _outcome(self, out: Any, assemble: bool = True) -> None:
+        out, _ = self.wf.settle(out)
         self.corners.append(CornerRow(self._visit(out.stamp_ns), int(out.stamp_ns), out.corner,
                                       bool(out.valid), out.status,
                                       [float(v) for v in out.zernikes_nm]))
-        vec, rej = self.assembler.add(
-            corner_entry_from_outcome(out), now_s)
+        if not assemble:
+            return
+        vec, rej = self.wf.assemble(out, self._now_s)
         if rej is not None:
             self.rejections.append(rej.message)
         if vec is not None:
             self._vector(vec)
 
     def _vector(self, vec: Any) -> None:
-        for c, st in zip(vec.corners, vec.statuses, strict=True):
-            if st.startswith("missing"):
-                for r in self.pairing.close(c, vec.stamp_ns, "visit published without it"):
-                    self.rejections.append(r.message)
+        for r in self.wf.close_missing(vec):
+            self._unpaired(r, assemble=False)  # the vector already holds it as missing
         self._ofc(vec)
 
     def expire(self, now_s: float) -> None:
-        from cwfs_ros.runtime.corner_pool import invalid_outcome
-
-        for r in self.pairing.expire(now_s):
-            self.rejections.append(r.message)
-            f = self.fields[r.corner]
-            self._outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
-                                          f["intra"], f["extra"], self.settings.solver), now_s)
-        for vec in self.assembler.expire(now_s):
+        self._now_s = now_s
+        for r in self.wf.expire_pairs(now_s):
+            self._unpaired(r)
+        for vec in self.wf.expire_visits(now_s):
             self._vector(vec)
 
     # -- the ofc_node path
@@ -500,7 +498,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
             pipe.warm_up()
             for m, msg in bag.decoded(topics):
                 if m.topic in images:
-                    pipe.image(msg, *images[m.topic], m.timestamp_ns / 1e9)
+                    pipe.image(msg, *images[m.topic], m.timestamp_ns / 1e9, m.timestamp_ns)
                     bar.update(1)
                 elif m.topic in joints:
                     pipe.joints(msg)

@@ -158,17 +158,11 @@ def stamp_to_ns(stamp: Time) -> int:
 
 
 def stamp_problem(stamp: Time) -> Problem | None:
-    """Why a header stamp cannot be used, or None.
+    """Why a header stamp cannot be used, or None: the rule of
+    :func:`cwfs_ros.runtime.pipeline.stamp_problem` (shared with the offline replay)."""
+    from cwfs_ros.runtime.pipeline import stamp_problem as rule
 
-    builtin_interfaces/Time requires ``nanosec`` below 1e9, but nothing enforces it: such a
-    stamp names a time that does not round-trip (``ns_to_stamp`` carries the excess into
-    ``sec``, which can overflow its int32), so an output stamped with it would be refused at
-    publication or go out with another visit's stamp.
-    """
-    if int(stamp.nanosec) >= 1_000_000_000:
-        return Problem("bad_stamp", f"nanosec {int(stamp.nanosec)} is not below 1e9 "
-                       "(builtin_interfaces/Time)")
-    return None
+    return rule(stamp)
 
 
 def ns_to_stamp(ns: int) -> Time:

@@ -26,7 +26,9 @@ reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
-The pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
+What happens to an image, a pair, an outcome and a timeout is decided by
+:class:`cwfs_ros.runtime.pipeline.WavefrontPipeline`, which the offline replay runs too; the
+pairing and assembly rules are in :mod:`cwfs_ros.runtime.visits`.
 
 A managed (lifecycle) node: the workers and topics exist from configure to cleanup; only an
 active node processes images (docs/ros.md, Managed nodes). /diagnostics is published in
@@ -35,14 +37,11 @@ every state.
 
 from __future__ import annotations
 
-import re
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import Future
 
-import numpy as np
 from cwfs_msgs.msg import CornerWavefront, WavefrontVector
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
@@ -51,7 +50,6 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
 from cwfs_ros.errors import ConfigError
-from cwfs_ros.frames.selection import load_selection_config
 from cwfs_ros.layout import CORNERS, SIDES, VECTOR_TOPIC, corner_topic, image_topic
 from cwfs_ros.ros.common import (
     DIAGNOSTICS_QOS,
@@ -78,30 +76,29 @@ from cwfs_ros.ros.common import (
 from cwfs_ros.ros.convert import (
     corner_entry_from_msg,
     corner_wavefront_msg,
-    image_record_from_msg,
     wavefront_vector_msg,
 )
-from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool, invalid_outcome
+from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool
+from cwfs_ros.runtime.pipeline import SETTINGS_PARAMS as _SETTINGS_PARAMS
+from cwfs_ros.runtime.pipeline import (
+    WavefrontPipeline,
+    frame_id_problem,
+    served_corners,
+)
 from cwfs_ros.runtime.visits import (
     CornerEntry,
-    PairingBuffer,
     PairReady,
     Rejection,
-    VisitAssembler,
     VisitVector,
     checked_entry,
-    corner_entry_from_outcome,
-    load_corner_fields,
 )
 from cwfs_ros.wfs.blur import MAX_SEEING_FWHM_ARCSEC
-from cwfs_ros.wfs.orientation import FLIPS, Orientation
+from cwfs_ros.wfs.orientation import FLIPS
 from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
 
-__all__ = ["WavefrontNode", "main"]
+__all__ = ["WavefrontNode", "frame_id_problem", "main"]
 
 NODE_NAME = "wavefront_node"
-_SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px",
-                    "seeing_fwhm_arcsec")
 _SOLVERS = ("exp", "fft", "lsq")
 _INPUT_MODES = ("auto", "stamps", "frames")
 _WARM_ATTEMPTS = 2  # a corner's warm-up is retried once (a worker killed while warming)
@@ -152,12 +149,6 @@ class WavefrontNode(ManagedNode):
         """configure: parameters read and checked, worker pool started, topics created."""
         p = self._param
         self._read_configuration()
-        tol_ns = int(round(p("pairing_tolerance_s") * 1e9))
-        timeout = p("visit_timeout_s")
-        self.pairing = PairingBuffer(self.corners, tolerance_ns=tol_ns, timeout_s=timeout)
-        self.assemble = bool(p("assemble"))
-        self.assembler = (VisitAssembler(tolerance_ns=tol_ns, timeout_s=timeout)
-                          if self.assemble else None)
         self.rejected = RejectionCounter()
         self.stats = {"images": 0, "pairs": 0, "corners_valid": 0, "corners_invalid": 0,
                       "visits_published": 0, "visits_incomplete": 0, "frame_pairs": 0}
@@ -166,9 +157,6 @@ class WavefrontNode(ManagedNode):
         # (monotonic time, what was missing) of the last visit published incomplete: WARN on
         # /diagnostics for a minute, as a producer that stopped is not an input rejected.
         self.last_incomplete: tuple[float, str] | None = None
-        # (corner, visit stamp) of visits whose corner had conflicting images after pairing:
-        # their estimate is published invalid (bounded, oldest forgotten first).
-        self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
         self.foreign: list[str] = []
         # Images never taken (the queue overflowed), per topic, from sequence numbers.
         self.image_gaps = {(c, s): SequenceGaps() for c in self.corners for s in SIDES}
@@ -185,29 +173,37 @@ class WavefrontNode(ManagedNode):
             f"settings {self.settings}")
 
     def _read_configuration(self) -> None:
-        """The corners, fields, estimator settings and orientations (ConfigError if bad)."""
+        """The corners and the pipeline: fields, estimator settings, orientations, pairing
+        and assembly (ConfigError if bad)."""
         p = self._param
-        corners = list(p("corners"))
-        bad = [c for c in corners if c not in CORNERS] or ([] if corners else ["(none)"])
-        if bad or len(set(corners)) != len(corners):
-            raise ConfigError(f"parameter corners must be distinct names among {CORNERS}, "
-                              f"got {corners}")
-        self.corners = tuple(c for c in CORNERS if c in corners)
-        self.fields = load_corner_fields(p("sensor_config") or None)
-        missing = [c for c in self.corners if c not in self.fields]
-        if missing:
-            raise ConfigError(f"no field points for corners {missing} in the sensor config")
-        self.settings = self._settings_from(lambda n: p(n))
-        validate_settings(self.settings)
-        # A bad selection file stops the node at start, as a bad sensor file does, rather
-        # than making every frame visit invalid (the workers read it per visit).
-        load_selection_config(p("selection_config") or None, solver=self.settings.solver)
-        self.orientations = {(c, s): self._orientation_from(c, s, lambda n: p(n))
-                             for c in self.corners for s in SIDES}
+        self.corners = served_corners(p("corners"))
+        self.assemble = bool(p("assemble"))
+        self.pipeline = WavefrontPipeline(p, self.corners, assemble=self.assemble)
         self.frame_id = p("frame_id")
         bad = string_param_problem("frame_id", self.frame_id)
         if bad is not None:
             raise ConfigError(f"parameter {bad}")
+
+    # The pipeline's state, as the node has always exposed it.
+    @property
+    def settings(self) -> EstimatorSettings:
+        return self.pipeline.settings
+
+    @property
+    def fields(self) -> dict:
+        return self.pipeline.fields
+
+    @property
+    def orientations(self) -> dict:
+        return self.pipeline.orientations
+
+    @property
+    def pairing(self):
+        return self.pipeline.pairing
+
+    @property
+    def assembler(self):
+        return self.pipeline.assembler
 
     def _create_topics(self, img_qos) -> None:
         # Managed publishers: nothing goes out unless the node is active.
@@ -347,15 +343,6 @@ class WavefrontNode(ManagedNode):
             "At most one log line per rejection reason per this period [s]; every rejection "
             "is counted on /diagnostics; 0 = a line each.", fp_range=(0.0, 3600.0)))
 
-    @staticmethod
-    def _settings_from(get) -> EstimatorSettings:
-        return EstimatorSettings.from_params(get)
-
-    @staticmethod
-    def _orientation_from(corner: str, side: str, get) -> Orientation:
-        return Orientation(int(get(f"sensors.{corner}.{side}.rot90")),
-                           str(get(f"sensors.{corner}.{side}.flip")))
-
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         new = {p.name: p.value for p in params}
 
@@ -366,7 +353,7 @@ class WavefrontNode(ManagedNode):
             if get("solver") not in _SOLVERS:
                 return result(False, f"solver must be one of {_SOLVERS}, got {get('solver')!r}")
             try:
-                validate_settings(self._settings_from(get))
+                validate_settings(EstimatorSettings.from_params(get))
             except ConfigError as exc:
                 return result(False, str(exc))
             except Exception as exc:  # noqa: BLE001 - a bad value is refused, never raised
@@ -387,32 +374,17 @@ class WavefrontNode(ManagedNode):
         with self._lock:
             if self.pool is None:
                 return  # unconfigured: the values are read on configure
-            if "pairing_tolerance_s" in names:
-                tol = int(round(self._param("pairing_tolerance_s") * 1e9))
-                self.pairing.tolerance_ns = tol
-                if self.assembler is not None:
-                    self.assembler.tolerance_ns = tol
-            if "visit_timeout_s" in names:
-                self.pairing.timeout_s = self._param("visit_timeout_s")
-                if self.assembler is not None:
-                    self.assembler.timeout_s = self._param("visit_timeout_s")
             if "frame_id" in names:
                 self.frame_id = self._param("frame_id")
-            for c in self.corners:
-                for s in SIDES:
-                    if any(n.startswith(f"sensors.{c}.{s}.") for n in names):
-                        self.orientations[(c, s)] = self._orientation_from(c, s, self._param)
-            if names & set(_SETTINGS_PARAMS):
-                self.settings = self._settings_from(self._param)
-                if names & (set(_SETTINGS_PARAMS) - {"seeing_fwhm_arcsec"}):
-                    self.get_logger().info(f"estimator settings now {self.settings}; "
-                                           "re-warming")
-                    self._start_warm_up()
-                else:
-                    # The seeing may follow the seeing monitor visit by visit: the workers'
-                    # caches stay valid (the blur reference is cached per seeing).
-                    self.get_logger().info(f"seeing now {self.settings.seeing_fwhm_arcsec:g}"
-                                           " arcsec FWHM")
+            change = self.pipeline.apply(names)
+            if change == "rewarm":
+                self.get_logger().info(f"estimator settings now {self.settings}; re-warming")
+                self._start_warm_up()
+            elif change == "seeing":
+                # The seeing may follow the seeing monitor visit by visit: the workers'
+                # caches stay valid (the blur reference is cached per seeing).
+                self.get_logger().info(f"seeing now {self.settings.seeing_fwhm_arcsec:g}"
+                                       " arcsec FWHM")
 
     # ------------------------------------------------------------------ warm-up
     def _start_warm_up(self) -> None:
@@ -493,123 +465,52 @@ class WavefrontNode(ManagedNode):
                                corner, side), warn=True)
 
     def _on_image(self, msg: Image, corner: str, side: str) -> None:
-        bad = stamp_problem(msg.header.stamp)
-        if bad is not None:  # no output could carry this stamp: refused before pairing
-            self._reject(Rejection("bad_stamp", f"{side} image of {corner}: {bad}", corner,
-                                   side, 0), warn=True)
+        """An image through the pipeline's guards, decoding and pairing; a pair to its job."""
+        refused = self.pipeline.refusal(msg, corner, side, self.get_clock().now().nanoseconds)
+        if refused is not None:
+            self._reject(refused, warn=True)
             return
-        guard = self._guard_image(msg, corner, side)
-        if guard is not None:
-            self._reject(guard, warn=True)
-            return
-        rec = image_record_from_msg(msg, corner, side, time.monotonic())
-        if rec.error:
-            self._reject(Rejection(rec.reason, f"{side} image of {corner}: "
-                                   f"{rec.error}", corner, side, rec.stamp_ns), warn=True)
+        # Decoded outside the lock: a frame takes a while, and the timers wait on the lock.
+        rec, bad = self.pipeline.record(msg, corner, side, time.monotonic())
+        if bad is not None:
+            self._reject(bad, warn=True)
         with self._lock:
             self.stats["images"] += 1
-            pair, rej = self.pairing.add(rec)
-            dropped = self._bound_pending()
-        for r in dropped:
+            step = self.pipeline.add_record(rec)
+        for r in step.dropped:
             self._publish_unpaired(r)
-        if rej is not None:
-            self._reject(rej, warn=True)
-            if rej.reason == "conflicting_images":
-                self._on_conflict(rej)
-        if pair is not None:
-            self._process_pair(pair)
-
-    def _guard_image(self, msg: Image, corner: str, side: str) -> Rejection | None:
-        """Refusals before decoding: a stamp too far ahead of the clock, a frame_id naming
-        another corner or side (see :func:`frame_id_problem`)."""
-        t = stamp_to_ns(msg.header.stamp)
-        ahead = float(self._param("max_future_s"))
-        now = self.get_clock().now().nanoseconds
-        if ahead > 0 and now > 0 and t > now + ahead * 1e9:
-            return Rejection("future_stamp", f"{side} image of {corner}: stamped "
-                             f"{(t - now) / 1e9:.4g} s ahead of the clock (max_future_s "
-                             f"{ahead:g})", corner, side, t)
-        bad = frame_id_problem(str(msg.header.frame_id), corner, side)
-        if bad is not None:
-            return Rejection("frame_mismatch", f"{side} image of {corner}: {bad}", corner,
-                             side, t)
-        return None
-
-    def _bound_pending(self) -> list[Rejection]:
-        """Drop the oldest waiting images while they hold more than ``max_pending_mb``
-        (called with the lock held)."""
-        limit = float(self._param("max_pending_mb")) * 1e6
-        out = []
-        while self.pairing.pending_bytes() > limit:
-            r = self.pairing.drop_oldest()
-            if r is None:
-                break
-            out.append(r)
-        return out
+        if step.rejection is not None:
+            self._reject(step.rejection, warn=True)
+            if step.rejection.reason == "conflicting_images":
+                self._on_conflict(step.rejection)
+        if step.pair is not None:
+            self._process_pair(step.pair)
 
     def _on_conflict(self, rej: Rejection) -> None:
         """Two different images for one corner, side and stamp: the corner's visit is
-        invalid. Found while the first waited, the pairing closed the visit: publish the
-        corner invalid now. Found after pairing: the estimate in flight is published
-        invalid (:meth:`_publish_outcome`), or, already published, the corner is made
-        invalid in its visit if that is still being assembled."""
-        c, t = rej.corner, rej.stamp_ns
+        invalid (:meth:`WavefrontPipeline.conflict` says how)."""
         with self._lock:
-            paired = self.pairing.was_paired(c, t)
-        if not paired:
-            self._publish_unpaired(Rejection("conflicting_images", rej.message, c, rej.side,
-                                             t), count=False)
-            return
-        with self._lock:
-            self._conflicts[(c, t)] = rej.message
-            while len(self._conflicts) > 256:
-                self._conflicts.popitem(last=False)
-            done, vec = ((False, None) if self.assembler is None else
-                         self.assembler.invalidate(c, t, f"conflicting_images: {rej.message}"))
+            unpaired, vec = self.pipeline.conflict(rej)
+        if unpaired is not None:
+            self._publish_unpaired(unpaired, count=False)
         if vec is not None:
             self._publish_vector(vec)
 
-    def _conflict_of(self, corner: str, stamp_ns: int) -> str | None:
-        with self._lock:
-            tol = self.pairing.tolerance_ns
-            for (c, t), m in self._conflicts.items():
-                if c == corner and abs(t - stamp_ns) <= tol:
-                    return m
-        return None
-
     def _process_pair(self, pair: PairReady) -> None:
-        c = pair.corner
-        fi, fe = self.fields[c]["intra"], self.fields[c]["extra"]
+        """The pair's job on the corner's worker (or its invalid outcome at once)."""
         with self._lock:
             self.stats["pairs"] += 1
-            settings = self.settings
-            oi, oe = self.orientations[(c, "intra")], self.orientations[(c, "extra")]
-        if pair.error is not None:
-            self._publish_outcome(invalid_outcome(c, pair.stamp_ns, pair.reason, pair.error,
-                                                  fi, fe, settings.solver), count=False)
+            job = self.pipeline.job_for(pair)
+        if isinstance(job, CornerOutcome):
+            self._publish_outcome(job, count=False)
             return
-        if self._is_frame_pair(pair.intra.image, pair.extra.image):
-            from cwfs_ros.frames.selection import CornerFrameJob
-
+        if isinstance(job, CornerJob):
+            fut = self.pool.submit(job)
+        else:
             with self._lock:
                 self.stats["frame_pairs"] += 1
-            fut = self.pool.submit_frames(CornerFrameJob(
-                c, pair.stamp_ns, pair.intra.image, pair.extra.image, settings,
-                sensor_config=str(self._param("sensor_config")),
-                selection_config=str(self._param("selection_config"))))
-        else:
-            job = CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
-                            settings, oi, oe)
-            fut = self.pool.submit(job)
+            fut = self.pool.submit_frames(job)
         fut.add_done_callback(self._on_future)
-
-    def _is_frame_pair(self, intra: np.ndarray, extra: np.ndarray) -> bool:
-        """Frames (several stars, detection needed) or stamps (one donut each)?"""
-        mode = str(self._param("input_mode"))
-        if mode != "auto":
-            return mode == "frames"
-        side = int(self._param("frame_min_side_px"))
-        return max(*np.shape(intra), *np.shape(extra)) >= side
 
     def _on_future(self, f: Future) -> None:
         if not self.is_active:  # deactivated while it ran: its managed publisher is off
@@ -628,11 +529,10 @@ class WavefrontNode(ManagedNode):
         ``r`` was already counted."""
         if count:
             self._reject(r, warn=True)
-        f = self.fields[r.corner]
         try:
-            self._publish_outcome(invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message,
-                                                  f["intra"], f["extra"], self.settings.solver),
-                                  count=False, assemble=assemble)
+            with self._lock:
+                out = self.pipeline.unpaired_outcome(r)
+            self._publish_outcome(out, count=False, assemble=assemble)
         except Exception as exc:  # noqa: BLE001
             self._publish_failed(exc)
 
@@ -653,13 +553,9 @@ class WavefrontNode(ManagedNode):
         Zernikes are in the focal-plane frame whatever frame the camera names its images in.
         """
         c = out.corner
-        conflict = self._conflict_of(c, out.stamp_ns) if out.valid else None
-        if conflict is not None:
-            f = self.fields[c]
-            out = invalid_outcome(c, out.stamp_ns, "conflicting_images", conflict,
-                                  f["intra"], f["extra"], out.solver)
-            count = False
         with self._lock:
+            out, replaced = self.pipeline.settle(out)
+            count = count and not replaced
             self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
             self.last_compute_ms[c] = out.compute_ms
             self.last_status[c] = out.status
@@ -671,7 +567,7 @@ class WavefrontNode(ManagedNode):
                                    frame_id=self.frame_id)
         self.pub_corner[c].publish(msg)
         if self.assembler is not None and assemble:
-            self._assemble(corner_entry_from_outcome(out))
+            self._assemble(out)
 
     # ------------------------------------------------------------------ assembly
     def _remote_corner_callback(self, corner: str):
@@ -708,9 +604,9 @@ class WavefrontNode(ManagedNode):
                 self._reject(Rejection("bad_corner_wavefront", f"{type(exc).__name__}: {exc}"))
         return on_msg
 
-    def _assemble(self, entry: CornerEntry) -> None:
+    def _assemble(self, entry: CornerEntry | CornerOutcome) -> None:
         with self._lock:
-            vec, rej = self.assembler.add(entry, time.monotonic())
+            vec, rej = self.pipeline.assemble(entry, time.monotonic())
         if rej is not None:
             self._reject(rej, warn=True)
         if vec is not None:
@@ -721,12 +617,9 @@ class WavefrontNode(ManagedNode):
             self.stats["visits_published"] += 1
             if not vec.complete:
                 self.stats["visits_incomplete"] += 1
-            # Local corners that never produced a pair for this visit: close them, so that a
+            # Local corners that never produced a pair for this visit: closed, so that a
             # late image is reported as late instead of starting a new visit.
-            closures = []
-            for c, st in zip(vec.corners, vec.statuses, strict=True):
-                if c in self.corners and st.startswith("missing"):
-                    closures += self.pairing.close(c, vec.stamp_ns, "visit published without it")
+            closures = self.pipeline.close_missing(vec)
         for r in closures:
             # The vector already holds the corner as missing: not assembled again.
             self._publish_unpaired(r, assemble=False)
@@ -748,14 +641,13 @@ class WavefrontNode(ManagedNode):
     def _expire_now(self) -> None:
         now = time.monotonic()
         with self._lock:
-            unpaired = self.pairing.expire(now)
+            unpaired = self.pipeline.expire_pairs(now)
         for r in unpaired:
             self._publish_unpaired(r)
-        if self.assembler is not None:
-            with self._lock:
-                due = self.assembler.expire(now)
-            for vec in due:
-                self._publish_vector(vec)
+        with self._lock:
+            due = self.pipeline.expire_visits(now)
+        for vec in due:
+            self._publish_vector(vec)
 
     # ------------------------------------------------------------------ diagnostics
     def _reject(self, rej: Rejection, warn: bool = False) -> None:
@@ -845,33 +737,6 @@ class WavefrontNode(ManagedNode):
             self.pub_diag.publish(arr)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f"diagnostics failed: {exc}")
-
-
-_CORNER_RE = re.compile(r"(?<![0-9A-Za-z])R(00|04|40|44)(?![0-9])", re.IGNORECASE)
-# LSST names the corner wavefront half-chips SW0 (extra-focal) and SW1 (intra-focal).
-_SIDE_WORDS = {"intra": "intra", "extra": "extra", "sw0": "extra", "sw1": "intra"}
-_SIDE_RE = re.compile(r"(?<![0-9A-Za-z])(intra|extra|sw0|sw1)(?![0-9A-Za-z])", re.IGNORECASE)
-
-
-def frame_id_problem(frame_id: str, corner: str, side: str) -> str | None:
-    """Why an image's ``frame_id`` contradicts its topic's corner and side, or None.
-
-    An empty frame_id, or one naming no corner and no side (``focal_plane``), says nothing
-    and is taken. One naming a corner (``R00`` .. ``R44``, as a word) must name the topic's
-    corner only; one naming a side (``intra``/``extra``, or LSST's ``SW1``/``SW0``) must name
-    the topic's side only.
-    """
-    if not frame_id:
-        return None
-    corners = {"R" + m.group(1) for m in _CORNER_RE.finditer(frame_id)}
-    if corners and corners != {corner}:
-        return (f"frame_id {frame_id[:80]!r} names {', '.join(sorted(corners))}, not the "
-                f"topic's corner {corner}")
-    sides = {_SIDE_WORDS[m.group(1).lower()] for m in _SIDE_RE.finditer(frame_id)}
-    if sides and sides != {side}:
-        return (f"frame_id {frame_id[:80]!r} names the {', '.join(sorted(sides))} side, not "
-                f"the topic's {side}")
-    return None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -2,7 +2,9 @@
 
 * :mod:`.images`: decoding of ``sensor_msgs/Image`` payloads with their pixel checks;
 * :mod:`.visits`: image records, the pairing buffer and the visit assembler;
-* :mod:`.corner_pool`: corner jobs (stamp or frame) and the worker pool that runs them.
+* :mod:`.corner_pool`: corner jobs (stamp or frame) and the worker pool that runs them;
+* :mod:`.pipeline`: wavefront_node's decisions from image to visit vector, which the node and
+  the offline replay both call.
 
 The ROS nodes (:mod:`cwfs_ros.ros`) and the offline replay (:mod:`cwfs_ros.cli.replay`)
 both drive these; nothing here imports rclpy.
