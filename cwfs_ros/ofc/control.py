@@ -809,8 +809,32 @@ class OFCSolver:
         self.sensitivity = sensitivity if sensitivity is not None else (
             SensitivityMatrix.from_ts_ofc()
         )
-        n_rows = self.sensitivity.matrix_nm.shape[0]
         self.n_fields = self.sensitivity.n_fields
+        self._set_solve(method, n_modes, alpha, kp, ki)
+        self.allow_partial = bool(allow_partial)
+        self.max_condition = float(max_condition)
+        for name, v in (("max_abs_zernike_nm", max_abs_zernike_nm),
+                        ("max_future_s", max_future_s)):
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"{name} must be a positive number or None, got {v!r}")
+        self.max_abs_zernike_nm = None if max_abs_zernike_nm is None else float(
+            max_abs_zernike_nm)
+        self.max_future_s = None if max_future_s is None else float(max_future_s)
+        self.spec = dof_spec if dof_spec is not None else load_dof_spec()
+        self.weights = _resolve_weights(weights, self.spec)
+        self._set_dof_limits(dof_mask, clip_range, max_step, max_integral)
+        self._set_intrinsic(band, intrinsic_nm)
+        self._inverse_cache: dict[bytes, _Inverse] = {}
+        self.dof_total = np.zeros(N_DOF)
+        self.integral = np.zeros(N_DOF)
+        self.n_steps = 0
+        # Stamp (ns) of the last visit applied through step(stamp_ns=...); None before one.
+        self.last_stamp_ns: int | None = None
+
+    def _set_solve(self, method: str, n_modes: int, alpha: float, kp: float,
+                   ki: float) -> None:
+        """Check and keep the inverse's and the PI law's settings (a bad one raises here,
+        not at the first visit)."""
         if method not in ("tsvd", "tikhonov"):
             raise ConfigError(f"method must be 'tsvd' or 'tikhonov', got {method!r}")
         if int(n_modes) < 1:
@@ -824,17 +848,16 @@ class OFCSolver:
         self.alpha = float(alpha)
         self.kp = float(kp)
         self.ki = float(ki)
-        self.allow_partial = bool(allow_partial)
-        self.max_condition = float(max_condition)
-        for name, v in (("max_abs_zernike_nm", max_abs_zernike_nm),
-                        ("max_future_s", max_future_s)):
-            if v is not None and not (np.isfinite(v) and v > 0):
-                raise ConfigError(f"{name} must be a positive number or None, got {v!r}")
-        self.max_abs_zernike_nm = None if max_abs_zernike_nm is None else float(
-            max_abs_zernike_nm)
-        self.max_future_s = None if max_future_s is None else float(max_future_s)
-        self.spec = dof_spec if dof_spec is not None else load_dof_spec()
-        self.weights = _resolve_weights(weights, self.spec)
+
+    def _set_dof_limits(
+        self,
+        dof_mask: np.ndarray | Sequence[bool] | None,
+        clip_range: str | float | np.ndarray | Sequence[float] | None,
+        max_step: str | float | np.ndarray | Sequence[float] | None,
+        max_integral: np.ndarray | Sequence[float] | None,
+    ) -> None:
+        """Resolve which DoFs move and how far (``self.spec`` must be set): a mask that
+        excludes every DoF would make every visit a no-op, so it is refused."""
         mask = np.ones(N_DOF, dtype=bool) if dof_mask is None else np.asarray(dof_mask, bool)
         if mask.shape != (N_DOF,):
             raise ConfigError(f"dof_mask must have {N_DOF} entries, got {mask.size}")
@@ -844,6 +867,12 @@ class OFCSolver:
         self.clip_range = _resolve_limit(clip_range, self.spec.range, "clip_range")
         self.max_step = _resolve_limit(max_step, self.spec.max_step, "max_step")
         self.max_integral = _resolve_limit(max_integral, np.full(N_DOF, np.inf), "max_integral")
+
+    def _set_intrinsic(self, band: str,
+                       intrinsic_nm: np.ndarray | Sequence[float] | None) -> None:
+        """The intrinsic wavefront to subtract: an explicit vector, or the band's at the
+        sensitivity's field points (``self.band`` is None for an explicit vector)."""
+        n_rows = self.sensitivity.matrix_nm.shape[0]
         if intrinsic_nm is not None:
             intr = np.asarray(intrinsic_nm, dtype=np.float64).reshape(-1)
             if intr.shape != (n_rows,) or not np.all(np.isfinite(intr)):
@@ -854,12 +883,6 @@ class OFCSolver:
             intr = intrinsic_vector_nm(band, self.sensitivity.field_points_deg)
         self.intrinsic_nm = intr
         self.band = band if intrinsic_nm is None else None
-        self._inverse_cache: dict[bytes, _Inverse] = {}
-        self.dof_total = np.zeros(N_DOF)
-        self.integral = np.zeros(N_DOF)
-        self.n_steps = 0
-        # Stamp (ns) of the last visit applied through step(stamp_ns=...); None before one.
-        self.last_stamp_ns: int | None = None
 
     # ---------------------------------------------------------------- state
     def set_band(self, band: str) -> None:
@@ -926,50 +949,65 @@ class OFCSolver:
         unfilled corners, against ``intrinsic_nm`` (default this solver's). Returns the
         flattened measurement with its corner and row masks, or the refusal.
         """
-        nf = self.n_fields
-        n_rows = nf * N_ZK
         intrinsic = self.intrinsic_nm if intrinsic_nm is None else intrinsic_nm
-
-        def refuse(reason: str, message: str, corners: tuple[bool, ...] = ()) -> Refusal:
-            return Refusal(reason, message, corners)
-
-        try:
-            y = np.asarray(measured_nm, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            return refuse("bad_shape", f"measured_nm is not a numeric array ({exc})")
-        if y.size != n_rows or y.ndim not in (1, 2) or (y.ndim == 2 and y.shape != (nf, N_ZK)):
-            return refuse("bad_shape", f"expected {n_rows} values ({nf} corners x {N_ZK} "
-                          f"Zernikes Z4..Z22), got shape {y.shape}")
-        y = y.reshape(-1)
-        if corner_valid is None:
-            cv = np.ones(nf, dtype=bool)
-        else:
-            cv_raw = np.asarray(corner_valid)
-            if cv_raw.size != nf:
-                return refuse("bad_shape", f"corner_valid must have {nf} entries, "
-                              f"got shape {cv_raw.shape}")
-            cv = cv_raw.reshape(-1).astype(bool)
+        parsed = self._parse_visit(measured_nm, corner_valid)
+        if isinstance(parsed, Refusal):
+            return parsed
+        y, cv = parsed
         corners = tuple(bool(c) for c in cv)
         names = self._corner_names()
         if not cv.all() and not self.allow_partial:
             bad = ", ".join(n for n, ok in zip(names, cv, strict=True) if not ok)
-            return refuse("corner_invalid", f"{bad} flagged invalid and allow_partial is False",
-                          corners=corners)
+            return Refusal("corner_invalid", f"{bad} flagged invalid and allow_partial is False",
+                           corners)
         if not cv.any():
-            return refuse("no_valid_corners", "every corner is flagged invalid", corners)
+            return Refusal("no_valid_corners", "every corner is flagged invalid", corners)
         rows = self.sensitivity.rows_for(cv)
         bad_rows = rows & ~np.isfinite(y)
         if bad_rows.any():
             bad_c = sorted({names[i // N_ZK] for i in np.flatnonzero(bad_rows)})
-            return refuse("non_finite", f"NaN/inf in the wavefront of {', '.join(bad_c)} "
-                          f"({int(bad_rows.sum())} values)", corners)
+            return Refusal("non_finite", f"NaN/inf in the wavefront of {', '.join(bad_c)} "
+                           f"({int(bad_rows.sum())} values)", corners)
+        problem = self._implausible(y, cv, rows, intrinsic)
+        if problem is not None:
+            return Refusal(problem.reason, problem.message, corners)
+        return CheckedVisit(y, cv, rows)
+
+    def _parse_visit(
+        self,
+        measured_nm: np.ndarray | Sequence[float],
+        corner_valid: np.ndarray | Sequence[bool] | None,
+    ) -> tuple[np.ndarray, np.ndarray] | Refusal:
+        """The flattened measurement and the corner flags, or a ``bad_shape`` refusal: a
+        message of the wrong size must be refused, not broadcast into the solve."""
+        nf = self.n_fields
+        n_rows = nf * N_ZK
+        try:
+            y = np.asarray(measured_nm, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            return Refusal("bad_shape", f"measured_nm is not a numeric array ({exc})")
+        if y.size != n_rows or y.ndim not in (1, 2) or (y.ndim == 2 and y.shape != (nf, N_ZK)):
+            return Refusal("bad_shape", f"expected {n_rows} values ({nf} corners x {N_ZK} "
+                           f"Zernikes Z4..Z22), got shape {y.shape}")
+        if corner_valid is None:
+            return y.reshape(-1), np.ones(nf, dtype=bool)
+        cv_raw = np.asarray(corner_valid)
+        if cv_raw.size != nf:
+            return Refusal("bad_shape", f"corner_valid must have {nf} entries, "
+                           f"got shape {cv_raw.shape}")
+        return y.reshape(-1), cv_raw.reshape(-1).astype(bool)
+
+    def _implausible(self, y: np.ndarray, cv: np.ndarray, rows: np.ndarray,
+                     intrinsic: np.ndarray) -> Problem | None:
+        """Why finite values of the used corners are still no measurement, or None."""
+        names = self._corner_names()
         if self.max_abs_zernike_nm is not None:
             big = rows & (np.abs(y) > self.max_abs_zernike_nm)
             if big.any():
                 big_c = sorted({names[i // N_ZK] for i in np.flatnonzero(big)})
-                return refuse("implausible_wavefront", f"|Z| up to {np.abs(y[big]).max():.4g} nm "
-                              f"in {', '.join(big_c)}, beyond max_abs_zernike_nm "
-                              f"{self.max_abs_zernike_nm:g}", corners)
+                return Problem("implausible_wavefront", f"|Z| up to {np.abs(y[big]).max():.4g} "
+                               f"nm in {', '.join(big_c)}, beyond max_abs_zernike_nm "
+                               f"{self.max_abs_zernike_nm:g}")
         # A measured total wavefront holds the design's (tens to hundreds of nm at the
         # corners): a valid-flagged corner of exact zeros is an unfilled field, not a
         # measurement, and solving it would correct a perfect telescope by minus its design.
@@ -977,10 +1015,10 @@ class OFCSolver:
                  if cv[k] and not np.any(y[k * N_ZK:(k + 1) * N_ZK])
                  and np.any(intrinsic[k * N_ZK:(k + 1) * N_ZK])]
         if blank:
-            return refuse("implausible_wavefront", f"{', '.join(blank)} flagged valid but all "
-                          f"{N_ZK} terms are exactly 0 (an unfilled corner: a measurement "
-                          "holds the design wavefront)", corners)
-        return CheckedVisit(y, cv, rows)
+            return Problem("implausible_wavefront", f"{', '.join(blank)} flagged valid but all "
+                           f"{N_ZK} terms are exactly 0 (an unfilled corner: a measurement "
+                           "holds the design wavefront)")
+        return None
 
     def estimate(
         self,
@@ -1093,11 +1131,46 @@ class OFCSolver:
                         np.full(self.n_fields * N_ZK, np.nan), float("nan"), float("nan"), 0,
                         float("nan"), (), problem.reason))
         if not est.valid:
-            return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False, est.status,
-                             est.wavefront_rms_nm, float("nan"), est.n_modes_used,
-                             est.dof_error, np.zeros(N_DOF, dtype=bool), est.condition,
-                             est.corners_used, time.perf_counter() - t0, reason=est.reason)
+            return self._unchanged(est, est.status, est.reason, t0)
         e = est.dof_error
+        u, total, integral, clipped = self._control_law(e)
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(total))
+                and np.all(np.isfinite(integral))):
+            # Never reached from finite, plausible input; kept so that no arithmetic accident
+            # can leave a NaN in the state, which every later visit would inherit.
+            return self._unchanged(
+                est, "non_finite_result: the solve gave NaN/inf DoFs; state unchanged",
+                "non_finite_result", t0)
+        if not dry_run:
+            self.integral = integral
+            self.dof_total = total
+            self.n_steps += 1
+            if stamp_ns is not None:
+                self.last_stamp_ns = int(stamp_ns)
+        rows = self.sensitivity.rows_for(est.corners_used)
+        r = est.wavefront_nm[rows]
+        pred = r + self.sensitivity.matrix_nm[rows] @ u
+        n_used = int(sum(est.corners_used))
+        return OFCResult(u.copy(), total.copy(), True, "ok", est.wavefront_rms_nm,
+                         _rms(pred, n_used), est.n_modes_used, e, clipped, est.condition,
+                         est.corners_used, time.perf_counter() - t0)
+
+    def _unchanged(self, est: Estimate, status: str, reason: str, t0: float) -> OFCResult:
+        """The result of a visit not applied: zero correction, the state as it was."""
+        return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False, status,
+                         est.wavefront_rms_nm, float("nan"), est.n_modes_used, est.dof_error,
+                         np.zeros(N_DOF, dtype=bool), est.condition, est.corners_used,
+                         time.perf_counter() - t0, reason=reason)
+
+    def _control_law(
+        self, e: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """PI law, step limit, range clip and anti-windup for the state error ``e``.
+
+        Returns the correction, the new accumulated state, the new integral and the DoFs
+        whose correction was limited; the solver's state is left alone (``step`` applies
+        them, unless a dry run or a non-finite result).
+        """
         # Without integral action (ki = 0) nothing accumulates: an integral summed unused
         # would kick the loop by ki * sum(e) the moment ki is turned on.
         integral = self.integral + e if self.ki != 0 else self.integral.copy()
@@ -1125,28 +1198,7 @@ class OFCSolver:
             total = self.dof_total + u
         # anti-windup: a DoF whose correction was limited does not integrate this visit
         integral[clipped] = self.integral[clipped]
-        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(total))
-                and np.all(np.isfinite(integral))):
-            # Never reached from finite, plausible input; kept so that no arithmetic accident
-            # can leave a NaN in the state, which every later visit would inherit.
-            return OFCResult(np.zeros(N_DOF), self.dof_total.copy(), False,
-                             "non_finite_result: the solve gave NaN/inf DoFs; state unchanged",
-                             est.wavefront_rms_nm, float("nan"), est.n_modes_used, e,
-                             np.zeros(N_DOF, dtype=bool), est.condition, est.corners_used,
-                             time.perf_counter() - t0, reason="non_finite_result")
-        if not dry_run:
-            self.integral = integral
-            self.dof_total = total
-            self.n_steps += 1
-            if stamp_ns is not None:
-                self.last_stamp_ns = int(stamp_ns)
-        rows = self.sensitivity.rows_for(est.corners_used)
-        r = est.wavefront_nm[rows]
-        pred = r + self.sensitivity.matrix_nm[rows] @ u
-        n_used = int(sum(est.corners_used))
-        return OFCResult(u.copy(), total.copy(), True, "ok", est.wavefront_rms_nm,
-                         _rms(pred, n_used), est.n_modes_used, e, clipped, est.condition,
-                         est.corners_used, time.perf_counter() - t0)
+        return u, total, integral, clipped
 
 
 # --------------------------------------------------------------------------------------------
