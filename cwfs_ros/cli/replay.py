@@ -418,6 +418,22 @@ def _compare(corners: list[CornerRow], dofs: list[DofRow], live_corners: dict[tu
     return cmp
 
 
+@dataclass
+class _BagTopics:
+    """The bag's topics replay reads, by role (the bag's names), and why any were left out."""
+
+    images: dict[str, tuple[str, str]]  # topic -> (corner, side)
+    live: dict[str, str]  # live wavefront topic -> corner
+    dof: list[str]  # the live correction topic, if it can be compared
+    joints: list[str]  # the joint-state topic, if it can be decoded
+    notes: list[str]
+
+    @property
+    def read(self) -> list[str]:
+        """Every topic to decode, in the order the roles are listed."""
+        return [*self.images, *self.live, *self.dof, *self.joints]
+
+
 def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[str | Path] = (),
            progress: bool = True, plots: bool = True, sim: bool | None = None,
            remap: dict[str, str] | None = None) -> ReplayResult:
@@ -431,9 +447,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
     Raises :class:`~cwfs_ros.ros.bag.BagError` for a bad bag (or one without image topics) and
     :class:`~cwfs_ros.errors.ConfigError` for bad parameters.
     """
-    from tqdm import tqdm
-
-    from cwfs_ros.ros.bag import BagError, open_bag
+    from cwfs_ros.ros.bag import open_bag
     from cwfs_ros.ros.launch import sim_params_file
 
     if sim is None:
@@ -444,74 +458,101 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
     ofc = node_parameters("ofc_node", params_files)
     out = Path(out_dir)
     with open_bag(bag_path) as bag:
-        bag_name = _bag_names(remap or {}, bag.topics)
-        images = {bag_name(image_topic(c, s)): (c, s) for c in _CORNERS for s in _SIDES
-                  if bag_name(image_topic(c, s)) in bag.topics}
-        if not images:
-            raise BagError(f"{bag.path}: no image topics (/aos/wfs/<corner>/<intra|extra>/image)"
-                           " in the bag: nothing to replay")
-        for t in images:
-            if bag.topics[t].type != IMAGE_TYPE:
-                raise BagError(f"{bag.path}: {t} holds {bag.topics[t].type}, not {IMAGE_TYPE}")
-        bag.require_decodable(images)
-        notes = ([f"{sim_params_file().name} applied under the --params files (the bag holds "
-                  f"{SIM_TRUTH_TOPIC}: a simulated run, as bringup --sim)"] if sim else [])
-        live = {bag_name(corner_topic(c)): c for c in _CORNERS
-                if bag_name(corner_topic(c)) in bag.topics}
-        for t in list(live):
-            if bag.topics[t].type != CORNER_TYPE or bag.decode_problem(t):
-                notes.append(f"{t} ({bag.topics[t].type}) not compared: "
-                             f"{bag.decode_problem(t) or 'not a ' + CORNER_TYPE}")
-                del live[t]
-        dof_topic = bag_name(DOF_TOPIC)
-        has_dof = dof_topic in bag.topics
-        if has_dof and (bag.topics[dof_topic].type != DOF_TYPE
-                        or bag.decode_problem(dof_topic)):
-            notes.append(f"{dof_topic} not compared: "
-                         f"{bag.decode_problem(dof_topic) or 'not a ' + DOF_TYPE}")
-            has_dof = False
-        n_images = sum(bag.topics[t].count for t in images)
-
-        from threadpoolctl import threadpool_limits
-
-        from cwfs_ros.runtime.visits import stamp_to_ns
-        from cwfs_ros.wfs.estimator import reset_caches
-
+        topics = _bag_topics(bag, remap or {}, sim)
+        n_images = sum(bag.topics[t].count for t in topics.images)
         pipe = _Pipeline(wf, ofc)
-        live_corners: dict[tuple, Any] = {}
-        live_dofs: dict[int, Any] = {}
-        joint_topic = bag_name(JOINT_TOPIC)
-        joints = [joint_topic] if (joint_topic in bag.topics and bag.topics[
-            joint_topic].type == JOINT_TYPE and not bag.decode_problem(joint_topic)) else []
-        topics = [*images, *live, *([dof_topic] if has_dof else []), *joints]
-        # One BLAS/OpenMP thread, as in the node's worker processes (corner_pool._worker_init):
-        # the sums then run in the same order and the estimates agree with the live ones to
-        # the last bit (with two threads they differed by up to 1e-4 nm). The limit only
-        # reaches libraries already loaded: load the estimator's (scipy, batoid) first.
-        _load_numeric_libraries(pipe.settings.instrument)
-        with threadpool_limits(1), tqdm(total=n_images, unit="img", desc="replay",
-                                        disable=not progress, file=sys.stderr) as bar:
-            # From the caches of a freshly started node's workers: a field tile serves a
-            # tile's third field on, so what this process estimated before could move the
-            # estimates by ~0.1 nm from the live ones (mapping.reset_field_tiles).
-            reset_caches()
-            pipe.warm_up()
-            for m, msg in bag.decoded(topics):
-                if m.topic in images:
-                    pipe.image(msg, *images[m.topic], m.timestamp_ns / 1e9, m.timestamp_ns)
-                    bar.update(1)
-                elif m.topic in joints:
-                    pipe.joints(msg)
-                elif m.topic in live:
-                    live_corners[(str(msg.corner) or live[m.topic],
-                                  stamp_to_ns(msg.header.stamp))] = msg
-                else:
-                    live_dofs[stamp_to_ns(msg.header.stamp)] = msg
-            pipe.expire(float("inf"))  # the end of the bag: every timeout has passed
+        live_corners, live_dofs = _run_bag(bag, topics, pipe, n_images, progress)
     comparison = None
     if live_corners or live_dofs:
         comparison = _compare(pipe.corners, pipe.dofs, live_corners, live_dofs)
-        comparison.notes[:0] = notes
+        comparison.notes[:0] = topics.notes
+    files = _write_outputs(out, pipe, plots)
+    result = ReplayResult(Path(bag_path), out, n_images, pipe.corners, pipe.dofs, comparison,
+                          files, wf, ofc, pipe.rejections)
+    _write_summary(files["summary"], result)
+    return result
+
+
+def _bag_topics(bag: Any, remap: dict[str, str], sim: bool) -> _BagTopics:
+    """Find the image, live-output and joint topics in ``bag``; raise for a bag without
+    decodable images (nothing to replay), note the live outputs that cannot be compared."""
+    from cwfs_ros.ros.bag import BagError
+    from cwfs_ros.ros.launch import sim_params_file
+
+    bag_name = _bag_names(remap, bag.topics)
+    images = {bag_name(image_topic(c, s)): (c, s) for c in _CORNERS for s in _SIDES
+              if bag_name(image_topic(c, s)) in bag.topics}
+    if not images:
+        raise BagError(f"{bag.path}: no image topics (/aos/wfs/<corner>/<intra|extra>/image)"
+                       " in the bag: nothing to replay")
+    for t in images:
+        if bag.topics[t].type != IMAGE_TYPE:
+            raise BagError(f"{bag.path}: {t} holds {bag.topics[t].type}, not {IMAGE_TYPE}")
+    bag.require_decodable(images)
+    notes = ([f"{sim_params_file().name} applied under the --params files (the bag holds "
+              f"{SIM_TRUTH_TOPIC}: a simulated run, as bringup --sim)"] if sim else [])
+    live = {bag_name(corner_topic(c)): c for c in _CORNERS
+            if bag_name(corner_topic(c)) in bag.topics}
+    for t in list(live):
+        if bag.topics[t].type != CORNER_TYPE or bag.decode_problem(t):
+            notes.append(f"{t} ({bag.topics[t].type}) not compared: "
+                         f"{bag.decode_problem(t) or 'not a ' + CORNER_TYPE}")
+            del live[t]
+    dof_topic = bag_name(DOF_TOPIC)
+    has_dof = dof_topic in bag.topics
+    if has_dof and (bag.topics[dof_topic].type != DOF_TYPE
+                    or bag.decode_problem(dof_topic)):
+        notes.append(f"{dof_topic} not compared: "
+                     f"{bag.decode_problem(dof_topic) or 'not a ' + DOF_TYPE}")
+        has_dof = False
+    joint_topic = bag_name(JOINT_TOPIC)
+    joints = [joint_topic] if (joint_topic in bag.topics and bag.topics[
+        joint_topic].type == JOINT_TYPE and not bag.decode_problem(joint_topic)) else []
+    return _BagTopics(images, live, [dof_topic] if has_dof else [], joints, notes)
+
+
+def _run_bag(bag: Any, topics: _BagTopics, pipe: _Pipeline, n_images: int,
+             progress: bool) -> tuple[dict[tuple, Any], dict[int, Any]]:
+    """Feed the bag's messages to ``pipe`` in bag order; return the live corner estimates by
+    ``(corner, stamp_ns)`` and the live corrections by stamp, to compare with."""
+    from threadpoolctl import threadpool_limits
+    from tqdm import tqdm
+
+    from cwfs_ros.runtime.visits import stamp_to_ns
+    from cwfs_ros.wfs.estimator import reset_caches
+
+    live_corners: dict[tuple, Any] = {}
+    live_dofs: dict[int, Any] = {}
+    # One BLAS/OpenMP thread, as in the node's worker processes (corner_pool._worker_init):
+    # the sums then run in the same order and the estimates agree with the live ones to
+    # the last bit (with two threads they differed by up to 1e-4 nm). The limit only
+    # reaches libraries already loaded: load the estimator's (scipy, batoid) first.
+    _load_numeric_libraries(pipe.settings.instrument)
+    with threadpool_limits(1), tqdm(total=n_images, unit="img", desc="replay",
+                                    disable=not progress, file=sys.stderr) as bar:
+        # From the caches of a freshly started node's workers: a field tile serves a
+        # tile's third field on, so what this process estimated before could move the
+        # estimates by ~0.1 nm from the live ones (mapping.reset_field_tiles).
+        reset_caches()
+        pipe.warm_up()
+        for m, msg in bag.decoded(topics.read):
+            if m.topic in topics.images:
+                pipe.image(msg, *topics.images[m.topic], m.timestamp_ns / 1e9, m.timestamp_ns)
+                bar.update(1)
+            elif m.topic in topics.joints:
+                pipe.joints(msg)
+            elif m.topic in topics.live:
+                live_corners[(str(msg.corner) or topics.live[m.topic],
+                              stamp_to_ns(msg.header.stamp))] = msg
+            else:
+                live_dofs[stamp_to_ns(msg.header.stamp)] = msg
+        pipe.expire(float("inf"))  # the end of the bag: every timeout has passed
+    return live_corners, live_dofs
+
+
+def _write_outputs(out: Path, pipe: _Pipeline, plots: bool) -> dict[str, Path]:
+    """Write the CSVs (and plots) of a replay into ``out``; the files by role, the summary's
+    path included (written last, from the result)."""
     out.mkdir(parents=True, exist_ok=True)
     files = {"zernikes": out / "zernikes.csv", "dof": out / "dof.csv"}
     _write_zernikes(files["zernikes"], pipe.corners)
@@ -520,10 +561,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, *, params_files: Sequence[
         files["zernikes_plot"] = _plot_zernikes(out / "zernikes.png", pipe.corners)
         files["dof_plot"] = _plot_dofs(out / "dof.png", pipe.dofs)
     files["summary"] = out / "summary.json"
-    result = ReplayResult(Path(bag_path), out, n_images, pipe.corners, pipe.dofs, comparison,
-                          files, wf, ofc, pipe.rejections)
-    _write_summary(files["summary"], result)
-    return result
+    return files
 
 
 def _bag_names(remap: dict[str, str], bag_topics: Any) -> Any:
