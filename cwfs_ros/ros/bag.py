@@ -1173,32 +1173,9 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
     own = context is None
     summary = PlaySummary(Path(path), float(rate), 0.0, 0)
     with open_bag(path) as bag:
-        names = list(bag.topics) if topics is None else [_absolute(t) for t in topics]
-        missing = [t for t in names if t not in bag.topics]
-        if missing:
-            raise BagError(f"{bag.path}: no topic {', '.join(missing)} in the bag "
-                           f"(it has {', '.join(bag.topics) or 'none'})")
-        classes = {}
-        for t in names:
-            if topics is None and bag.topics[t].type == CORRECTION_TYPE:
-                summary.skipped[t] = ("corrections are played only when named (--topics): "
-                                      "actuators listening would apply them again")
-                continue
-            cls = _message_class(bag.topics[t].type)
-            if cls is None:
-                why = f"message type {bag.topics[t].type} is not installed"
-                if topics is not None:
-                    raise BagError(f"cannot play {t}: {why}")
-                summary.skipped[t] = why
-            else:
-                classes[t] = cls
-        if not classes:
-            raise BagError(f"{bag.path}: nothing to play"
-                           + (f" ({'; '.join(summary.skipped.values())})"
-                              if summary.skipped else " (no topics)"))
+        classes = _play_classes(bag, topics, summary)
         ctx = _own_context(domain_id) if own else context
         import rclpy
-        from rclpy.duration import Duration as RclDuration
 
         node = None
         try:
@@ -1213,32 +1190,7 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
                     on_ready(node, pubs)
                 if delay_s > 0:
                     stop.wait(float(delay_s))
-                t_start = time.monotonic()
-                counts = dict.fromkeys(pubs, 0)
-                while not stop.is_set():
-                    summary.loops += 1
-                    t0_wall, t0_bag = time.monotonic(), None
-                    for m in bag.messages(list(pubs)):
-                        if t0_bag is None:
-                            t0_bag = m.timestamp_ns
-                        due = t0_wall + (m.timestamp_ns - t0_bag) / 1e9 / rate
-                        wait = due - time.monotonic()
-                        if wait > 0 and stop.wait(wait):
-                            break
-                        if stop.is_set():
-                            break
-                        pubs[m.topic].publish(m.data)
-                        counts[m.topic] += 1
-                    if not loop:
-                        break
-                # Reliable data still in flight would be lost when the node goes: wait for
-                # the subscribers' acknowledgements (at most ack_timeout_s in all).
-                deadline = time.monotonic() + ack_timeout_s
-                for p in pubs.values():
-                    left = max(0.0, deadline - time.monotonic())
-                    p.wait_for_all_acked(RclDuration(nanoseconds=int(left * 1e9)))
-                summary.counts = counts
-                summary.wall_s = time.monotonic() - t_start
+                _play_loops(bag, pubs, rate, loop, stop, ack_timeout_s, summary)
         finally:
             if node is not None:
                 with suppress(Exception):
@@ -1246,6 +1198,84 @@ def play(path: str | Path, *, rate: float = 1.0, topics: Sequence[str] | None = 
             if own:
                 ctx.try_shutdown()
     return summary
+
+
+def _play_classes(bag: Bag, topics: Sequence[str] | None,
+                  summary: PlaySummary) -> dict[str, Any]:
+    """The message class of each topic to play; the topics left out go to ``summary.skipped``.
+
+    A named topic that cannot be played raises (the user asked for it); playing everything
+    skips it, and the corrections (applied again by any actuator listening) unless named.
+    """
+    names = list(bag.topics) if topics is None else [_absolute(t) for t in topics]
+    missing = [t for t in names if t not in bag.topics]
+    if missing:
+        raise BagError(f"{bag.path}: no topic {', '.join(missing)} in the bag "
+                       f"(it has {', '.join(bag.topics) or 'none'})")
+    classes = {}
+    for t in names:
+        if topics is None and bag.topics[t].type == CORRECTION_TYPE:
+            summary.skipped[t] = ("corrections are played only when named (--topics): "
+                                  "actuators listening would apply them again")
+            continue
+        cls = _message_class(bag.topics[t].type)
+        if cls is None:
+            why = f"message type {bag.topics[t].type} is not installed"
+            if topics is not None:
+                raise BagError(f"cannot play {t}: {why}")
+            summary.skipped[t] = why
+        else:
+            classes[t] = cls
+    if not classes:
+        raise BagError(f"{bag.path}: nothing to play"
+                       + (f" ({'; '.join(summary.skipped.values())})"
+                          if summary.skipped else " (no topics)"))
+    return classes
+
+
+def _play_loops(bag: Bag, pubs: dict[str, Any], rate: float, loop: bool,
+                stop: threading.Event, ack_timeout_s: float, summary: PlaySummary) -> None:
+    """Play the bag once, or over and over with ``loop``, until ``stop``, then wait for the
+    acknowledgements; the loops, counts and wall time (the wait included) go to ``summary``."""
+    t_start = time.monotonic()
+    counts = dict.fromkeys(pubs, 0)
+    while not stop.is_set():
+        summary.loops += 1
+        _play_once(bag, pubs, counts, rate, stop)
+        if not loop:
+            break
+    _wait_acked(pubs, ack_timeout_s)
+    summary.counts = counts
+    summary.wall_s = time.monotonic() - t_start
+
+
+def _play_once(bag: Bag, pubs: dict[str, Any], counts: dict[str, int], rate: float,
+               stop: threading.Event) -> None:
+    """Publish the bag once through, each message at its recorded offset / ``rate`` from now
+    (monotonic clock); return early when ``stop`` is set. ``counts`` counts per topic."""
+    t0_wall, t0_bag = time.monotonic(), None
+    for m in bag.messages(list(pubs)):
+        if t0_bag is None:
+            t0_bag = m.timestamp_ns
+        due = t0_wall + (m.timestamp_ns - t0_bag) / 1e9 / rate
+        wait = due - time.monotonic()
+        if wait > 0 and stop.wait(wait):
+            break
+        if stop.is_set():
+            break
+        pubs[m.topic].publish(m.data)
+        counts[m.topic] += 1
+
+
+def _wait_acked(pubs: dict[str, Any], ack_timeout_s: float) -> None:
+    """Reliable data still in flight would be lost when the node goes: wait for the
+    subscribers' acknowledgements (at most ``ack_timeout_s`` in all)."""
+    from rclpy.duration import Duration as RclDuration
+
+    deadline = time.monotonic() + ack_timeout_s
+    for p in pubs.values():
+        left = max(0.0, deadline - time.monotonic())
+        p.wait_for_all_acked(RclDuration(nanoseconds=int(left * 1e9)))
 
 
 # ----------------------------------------------------------------------------- command line
