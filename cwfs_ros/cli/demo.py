@@ -248,14 +248,8 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
             or correction did not arrive within ``config.visit_timeout_s``.
     """
     say = on_status or (lambda _m: None)
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    overlay_path = workdir / "params_overlay.yaml"
-    overlay_path.write_text(yaml.safe_dump(_overlay(config), sort_keys=False))
-    from cwfs_ros.ros.launch import run_nodes, sim_params_file
-
-    files = [*([sim_params_file()] if config.params_files is None
-               else [Path(f) for f in config.params_files]), overlay_path]
+    files = _params_files(config, Path(workdir))
+    from cwfs_ros.ros.launch import run_nodes
 
     # rcl reads the discovery range when the context is initialised (in run_nodes, below);
     # the caller's environment is restored once the nodes exist.
@@ -292,38 +286,61 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     try:
         ready.wait(60)
         if not config.visible:
-            if saved_env is None:
-                os.environ.pop(_ISOLATE_ENV, None)
-            else:
-                os.environ[_ISOLATE_ENV] = saved_env
+            _restore_env(_ISOLATE_ENV, saved_env)
         if "nodes" not in started:
             raise LoopError("the nodes did not start (see the error above)"
                             + (f", exit code {exit_code[0]}" if exit_code else ""))
-        nodes = started["nodes"]
         monitor = LoopMonitor(ctx)
         started["executor"].add_node(monitor.node)
-        cam, wf = nodes["camera_sim_node"], nodes["wavefront_node"]
-        if not monitor.trigger.wait_for_service(timeout_sec=20):
-            raise LoopError("camera_sim_node/trigger did not appear")
-        say("warming up the per-corner estimator workers ...")
-        _wait(lambda: wf.ready, 120, "wavefront_node workers to warm up")
-        _wait(lambda: all(p.get_subscription_count() > 0 for p in cam.pubs.values()), 20,
-              "wavefront_node to subscribe to the camera")
-        _wait(monitor.connected, 20, "the monitor to connect")
-        startup = time.monotonic() - t0
-        keep = {k if k > 0 else config.visits + 1 + k for k in config.keep_images}
-        records: list[VisitRecord] = []
-        for k in range(1, config.visits + 1):
-            rec = monitor.run_visit(cam, keep_images=k in keep,
-                                    timeout_s=config.visit_timeout_s)
-            records.append(rec)
-            if on_visit is not None:
-                on_visit(rec)
-        return LoopRun(config=config, records=records, startup_s=startup,
-                       wall_s=time.monotonic() - t0, camera_stats=dict(cam.stats))
+        return _drive(config, monitor, started["nodes"], t0, on_visit, say)
     finally:
         ctx.try_shutdown()
         th.join(15)
+
+
+def _params_files(config: LoopConfig, workdir: Path) -> list[Path]:
+    """The nodes' parameter files: the run's (default config/sim.yaml), then its own overlay,
+    written into ``workdir`` so that the run can be repeated."""
+    from cwfs_ros.ros.launch import sim_params_file
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    overlay_path = workdir / "params_overlay.yaml"
+    overlay_path.write_text(yaml.safe_dump(_overlay(config), sort_keys=False))
+    return [*([sim_params_file()] if config.params_files is None
+              else [Path(f) for f in config.params_files]), overlay_path]
+
+
+def _restore_env(name: str, saved: str | None) -> None:
+    """Put the environment variable ``name`` back as it was (unset when ``saved`` is None)."""
+    if saved is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = saved
+
+
+def _drive(config: LoopConfig, monitor: LoopMonitor, nodes: dict[str, Any], t0: float,
+           on_visit: Callable[[VisitRecord], None] | None,
+           say: Callable[[str], None]) -> LoopRun:
+    """Wait for the started graph to be ready (service, warm workers, connections), then run
+    the visits one at a time; ``t0`` is when the start began (start-up and wall times)."""
+    cam, wf = nodes["camera_sim_node"], nodes["wavefront_node"]
+    if not monitor.trigger.wait_for_service(timeout_sec=20):
+        raise LoopError("camera_sim_node/trigger did not appear")
+    say("warming up the per-corner estimator workers ...")
+    _wait(lambda: wf.ready, 120, "wavefront_node workers to warm up")
+    _wait(lambda: all(p.get_subscription_count() > 0 for p in cam.pubs.values()), 20,
+          "wavefront_node to subscribe to the camera")
+    _wait(monitor.connected, 20, "the monitor to connect")
+    startup = time.monotonic() - t0
+    keep = {k if k > 0 else config.visits + 1 + k for k in config.keep_images}
+    records: list[VisitRecord] = []
+    for k in range(1, config.visits + 1):
+        rec = monitor.run_visit(cam, keep_images=k in keep, timeout_s=config.visit_timeout_s)
+        records.append(rec)
+        if on_visit is not None:
+            on_visit(rec)
+    return LoopRun(config=config, records=records, startup_s=startup,
+                   wall_s=time.monotonic() - t0, camera_stats=dict(cam.stats))
 
 
 def _wait(cond: Callable[[], bool], timeout: float, what: str) -> None:
@@ -437,14 +454,7 @@ class LoopMonitor:
             # Drop what is no longer needed (bounded memory over long runs).
             for old in [s for s in self.images if s < stamp]:
                 del self.images[old]
-        if vec is not None:
-            est = np.asarray(vec.zernikes_nm, dtype=np.float64).copy()
-            valid = np.asarray(vec.corner_valid, dtype=bool)
-        else:
-            est, valid = np.full(len(CORNERS) * N_ZK, np.nan), np.zeros(len(CORNERS), bool)
-        for i, ok in enumerate(valid):
-            if not ok:
-                est[i * N_ZK:(i + 1) * N_ZK] = np.nan
+        est, valid = _estimate_of(vec)
         return VisitRecord(
             visit=int(truth.visit), stamp_ns=stamp,
             dof_state=np.asarray(truth.dof_state, dtype=np.float64).copy(),
@@ -465,6 +475,20 @@ class LoopMonitor:
             rotator_angle_deg=float(truth.rotator_angle_deg),
             predicted_field_nm=float(dof.predicted_field_rms_nm),
         )
+
+
+def _estimate_of(vec: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A visit's estimated Zernikes (nm, NaN for the invalid corners) and the corner flags
+    from its WavefrontVector (None: not received, every corner invalid)."""
+    if vec is not None:
+        est = np.asarray(vec.zernikes_nm, dtype=np.float64).copy()
+        valid = np.asarray(vec.corner_valid, dtype=bool)
+    else:
+        est, valid = np.full(len(CORNERS) * N_ZK, np.nan), np.zeros(len(CORNERS), bool)
+    for i, ok in enumerate(valid):
+        if not ok:
+            est[i * N_ZK:(i + 1) * N_ZK] = np.nan
+    return est, valid
 
 
 # ------------------------------------------------------------------------------ report
