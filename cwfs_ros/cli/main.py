@@ -276,12 +276,46 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
+    """``cwfs-ros demo``: check the options, run the closed loop with a progress table, write
+    the report; the exit status is the ``--check`` verdict (1 when it fails)."""
     from tqdm import tqdm
 
     from cwfs_ros.cli.demo import LoopConfig, LoopError, run_closed_loop, write_report
-    from cwfs_ros.errors import ConfigError
     from cwfs_ros.ros.launch import sim_params_file
     from cwfs_ros.sim.perturbation import random_perturbation
+
+    _check_demo_args(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    dof = random_perturbation(args.perturbation, args.seed, args.wavefront_error)
+    print(f"cwfs-ros demo: {args.perturbation} perturbation (seed {args.seed}) of "
+          f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
+          f"{args.photons:g} photons per donut"
+          + (f", seeing {args.seeing:g} arcsec" if args.seeing > 0 else "")
+          + (f", camera rotator {args.rotator_angle:g} deg" if args.rotator_angle else "")
+          + ("" if args.visible else "; DDS discovery off (this process only)"), flush=True)
+    # One override reaches both nodes that declare it: the camera renders that seeing and
+    # the wavefront node is told it.
+    seeing_args = ("-p", f"seeing_fwhm_arcsec:={args.seeing:g}") if args.seeing > 0 else ()
+    config = LoopConfig(
+        visits=args.visits, initial_dof=dof, n_photons=args.photons,
+        render_seed=args.render_seed,
+        params_files=[sim_params_file(), *args.params], visible=args.visible,
+        domain_id=args.domain_id, rotator_angle_deg=args.rotator_angle,
+        ros_args=(() if args.verbose else ("--log-level", "warn")) + seeing_args)
+    bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
+    try:
+        run = run_closed_loop(config, workdir=args.out, on_visit=_demo_visit_printer(bar),
+                              on_status=lambda m: tqdm.write(m))
+    except LoopError as exc:
+        raise CliError(str(exc)) from None
+    finally:
+        bar.close()
+    return _demo_summary(run, write_report(run, args.out), args.check)
+
+
+def _check_demo_args(args: argparse.Namespace) -> None:
+    """Refuse out-of-range demo options with a one-line error before anything starts."""
+    from cwfs_ros.errors import ConfigError
     from cwfs_ros.wfs.blur import MAX_SEEING_FWHM_ARCSEC, check_seeing
 
     if not args.wavefront_error > 0:
@@ -300,27 +334,16 @@ def _run_demo(args: argparse.Namespace) -> int:
     for f in args.params:
         if not Path(f).is_file():
             raise CliError(f"--params {f}: no such file")
-    args.out.mkdir(parents=True, exist_ok=True)
-    dof = random_perturbation(args.perturbation, args.seed, args.wavefront_error)
-    print(f"cwfs-ros demo: {args.perturbation} perturbation (seed {args.seed}) of "
-          f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
-          f"{args.photons:g} photons per donut"
-          + (f", seeing {args.seeing:g} arcsec" if args.seeing > 0 else "")
-          + (f", camera rotator {args.rotator_angle:g} deg" if args.rotator_angle else "")
-          + ("" if args.visible else "; DDS discovery off (this process only)"), flush=True)
-    # One override reaches both nodes that declare it: the camera renders that seeing and
-    # the wavefront node is told it.
-    seeing_args = ("-p", f"seeing_fwhm_arcsec:={args.seeing:g}") if args.seeing > 0 else ()
-    config = LoopConfig(
-        visits=args.visits, initial_dof=dof, n_photons=args.photons,
-        render_seed=args.render_seed,
-        params_files=[sim_params_file(), *args.params], visible=args.visible,
-        domain_id=args.domain_id, rotator_angle_deg=args.rotator_angle,
-        ros_args=(() if args.verbose else ("--log-level", "warn")) + seeing_args)
+
+
+def _demo_visit_printer(bar: Any) -> Callable[[Any], None]:
+    """The demo's ``on_visit``: one table row per visit (the header before the first),
+    written above the progress ``bar``, which it advances."""
+    from tqdm import tqdm
+
     header = (f"{'visit':>5}  {'true WFE':>9}  {'field WFE':>9}  {'FWHM':>8}  "
               f"{'measured':>9}  {'est. err':>8}  "
               f"{'correction':>10}  {'render':>7}  {'estimate':>8}  {'solve':>6}")
-    bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
 
     def on_visit(r: Any) -> None:
         if r.visit == 1:
@@ -337,14 +360,12 @@ def _run_demo(args: argparse.Namespace) -> int:
         bar.update(1)
         bar.set_postfix_str(f"field WFE {r.field_error_nm:.0f} nm")
 
-    try:
-        run = run_closed_loop(config, workdir=args.out, on_visit=on_visit,
-                              on_status=lambda m: tqdm.write(m))
-    except LoopError as exc:
-        raise CliError(str(exc)) from None
-    finally:
-        bar.close()
-    paths = write_report(run, args.out)
+    return on_visit
+
+
+def _demo_summary(run: Any, paths: dict[str, Path], check: bool) -> int:
+    """Print the run's outcome and the report's paths; with ``check``, the verdict as the
+    exit status (the field error down x5 within 5 visits, every correction valid)."""
     e, fe = run.true_error_nm, run.field_error_nm
     factor = run.reduction(5, "field")
     all_valid = all(r.correction_valid for r in run.records)
@@ -353,7 +374,7 @@ def _run_demo(args: argparse.Namespace) -> int:
           f"5 visits; start-up {run.startup_s:.1f} s, total {run.wall_s:.0f} s)")
     print(f"report: {paths['html'].resolve()}")
     print(f"figure: {paths['png'].resolve()}")
-    if args.check:
+    if check:
         ok = factor >= 5.0 and all_valid
         print(f"check: {'PASS' if ok else 'FAIL'} (needs the field figure x5 within 5 "
               f"visits and every "
