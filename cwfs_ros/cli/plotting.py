@@ -76,7 +76,6 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
 
     path = Path(path)
     inputs = getattr(result, "inputs", None) or {}
@@ -90,9 +89,26 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     outer = fig.add_gridspec(2, 1, height_ratios=[1.0, 1.35])
     top = outer[0].subgridspec(1, 4)
     bottom = outer[1].subgridspec(1, 2, width_ratios=[1.0, 1.15])
+    _result_donuts(fig, [fig.add_subplot(top[0, i]) for i in range(4)], result, intra, extra)
+    _result_zernikes(fig.add_subplot(bottom[0, 0]), result)
+    _result_convergence(fig.add_subplot(bottom[0, 1]), result)
 
-    # (a) donuts: inputs on their own scales, compensated images on common limits.
-    axes = [fig.add_subplot(top[0, i]) for i in range(4)]
+    status = (f"caustic: {'yes' if result.caustic else 'no'}, "
+              f"converged: {'yes' if result.converged else 'no'}, "
+              f"iterations: {result.iterations}, wall time: {result.wall_time_s:.3f} s")
+    meta = (f"{result.instrument}, band {result.band} ({result.wavelength_nm:g} nm), "
+            f"solver {result.solver}, field ({result.field_deg[0]:.3f}, "
+            f"{result.field_deg[1]:.3f}) deg")
+    lines = ([title] if title else []) + [meta, status]
+    fig.suptitle("\n".join(lines), fontsize=11)
+    fig.savefig(path, format="png")
+    return path
+
+
+def _result_donuts(fig: Any, axes: list[Any], result: Any, intra: np.ndarray | None,
+                   extra: np.ndarray | None) -> None:
+    """Panel (a): the inputs on their own scales, the compensated images on common limits
+    (so that intra and extra compare), the common pupil outlined."""
     show_donut(axes[0], intra, "(a) intra, input")
     show_donut(axes[1], extra, "extra, input")
     comp = getattr(result, "compensated", None) or {}
@@ -120,8 +136,9 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     if im is not None:
         fig.colorbar(im, ax=axes[2:], shrink=0.85, label="normalised intensity")
 
-    # (b) Zernike bar chart.
-    ax_b = fig.add_subplot(bottom[0, 0])
+
+def _result_zernikes(ax_b: Any, result: Any) -> None:
+    """Panel (b): the estimate's Z4..Z22 beside the design (intrinsic) part, nm."""
     noll = np.asarray(result.noll)
     z = np.asarray(result.zernikes_nm, float)
     design = np.asarray(result.intrinsic_nm, float)
@@ -137,9 +154,12 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     ax_b.grid(axis="y", alpha=0.3)
     ax_b.legend(fontsize=8)
 
-    # (c) convergence: estimate of each term vs outer iteration (design part included, so
-    # the last point of each line is the bar in (b)).
-    ax_c = fig.add_subplot(bottom[0, 1])
+
+def _result_convergence(ax_c: Any, result: Any) -> None:
+    """Panel (c): each term's estimate against the outer iteration, design part included (so
+    the last point of each line is the bar in (b)); the largest terms coloured and labelled."""
+    noll = np.asarray(result.noll)
+    design = np.asarray(result.intrinsic_nm, float)
     hist = np.asarray(result.history_nm, float)
     n_it = hist.shape[0] if hist.ndim == 2 else 0
     ax_c.set_title("(c) convergence", fontsize=10)
@@ -148,44 +168,40 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     if n_it == 0:
         ax_c.text(0.5, 0.5, "no iteration completed", ha="center", va="center",
                   transform=ax_c.transAxes)
-    else:
-        it = np.arange(1, n_it + 1)
-        js = [int(j) for j in noll if j <= hist.shape[1]]
-        traces = {j: hist[:, j - 1] + design[j - int(noll[0])] for j in js}
-        final = {j: abs(float(traces[j][-1])) for j in js}
-        biggest = max(final.values()) if final else 0.0
-        ranked = sorted(js, key=final.__getitem__, reverse=True)
-        labelled = [j for j in ranked[:_N_LABELLED] if final[j] > 0.02 * biggest > 0]
-        colours = [f"C{i}" for i in range(10)]
-        for j in js:
-            if j in labelled:
-                c = colours[labelled.index(j) % 10]
-                ax_c.plot(it, traces[j], "-o", color=c, ms=3, lw=1.6, label=f"Z{j}")
-            else:
-                ax_c.plot(it, traces[j], "-", color="0.6", lw=0.8, alpha=0.7)
-        handles, labels = ax_c.get_legend_handles_labels()
-        order = sorted(range(len(labels)), key=lambda i: labelled.index(int(labels[i][1:])))
-        handles, labels = [handles[i] for i in order], [labels[i] for i in order]
-        if len(labelled) < len(js):
-            handles.append(Line2D([], [], color="0.6", lw=0.8))
-            labels.append("other terms")
-        ax_c.legend(handles, labels, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0),
-                    borderaxespad=0.0, title="largest", title_fontsize=8)
-        ax_c.axhline(0.0, color="k", lw=0.6)
-        ax_c.set_xlim(0.5, n_it + 0.5)
-        ax_c.set_xticks(it if n_it <= 20 else np.linspace(1, n_it, 10).round().astype(int))
-        ax_c.grid(alpha=0.3)
+        return
+    it = np.arange(1, n_it + 1)
+    js = [int(j) for j in noll if j <= hist.shape[1]]
+    traces = {j: hist[:, j - 1] + design[j - int(noll[0])] for j in js}
+    final = {j: abs(float(traces[j][-1])) for j in js}
+    biggest = max(final.values()) if final else 0.0
+    ranked = sorted(js, key=final.__getitem__, reverse=True)
+    labelled = [j for j in ranked[:_N_LABELLED] if final[j] > 0.02 * biggest > 0]
+    colours = [f"C{i}" for i in range(10)]
+    for j in js:
+        if j in labelled:
+            c = colours[labelled.index(j) % 10]
+            ax_c.plot(it, traces[j], "-o", color=c, ms=3, lw=1.6, label=f"Z{j}")
+        else:
+            ax_c.plot(it, traces[j], "-", color="0.6", lw=0.8, alpha=0.7)
+    _convergence_legend(ax_c, labelled, len(js))
+    ax_c.axhline(0.0, color="k", lw=0.6)
+    ax_c.set_xlim(0.5, n_it + 0.5)
+    ax_c.set_xticks(it if n_it <= 20 else np.linspace(1, n_it, 10).round().astype(int))
+    ax_c.grid(alpha=0.3)
 
-    status = (f"caustic: {'yes' if result.caustic else 'no'}, "
-              f"converged: {'yes' if result.converged else 'no'}, "
-              f"iterations: {result.iterations}, wall time: {result.wall_time_s:.3f} s")
-    meta = (f"{result.instrument}, band {result.band} ({result.wavelength_nm:g} nm), "
-            f"solver {result.solver}, field ({result.field_deg[0]:.3f}, "
-            f"{result.field_deg[1]:.3f}) deg")
-    lines = ([title] if title else []) + [meta, status]
-    fig.suptitle("\n".join(lines), fontsize=11)
-    fig.savefig(path, format="png")
-    return path
+
+def _convergence_legend(ax_c: Any, labelled: list[int], n_terms: int) -> None:
+    """The labelled terms, largest first, and one grey entry for the others (if any)."""
+    from matplotlib.lines import Line2D
+
+    handles, labels = ax_c.get_legend_handles_labels()
+    order = sorted(range(len(labels)), key=lambda i: labelled.index(int(labels[i][1:])))
+    handles, labels = [handles[i] for i in order], [labels[i] for i in order]
+    if len(labelled) < n_terms:
+        handles.append(Line2D([], [], color="0.6", lw=0.8))
+        labels.append("other terms")
+    ax_c.legend(handles, labels, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                borderaxespad=0.0, title="largest", title_fontsize=8)
 
 
 def plot_closed_loop(run: Any, path: str | Path) -> Path:
@@ -200,18 +216,32 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from cwfs_ros.layout import CORNERS, NOLL, SIDES
-
     path = Path(path)
     recs = list(run.records)
-    kept = [r for r in recs if r.images]
     fig = Figure(figsize=(16.0, 13.0), dpi=90, layout="constrained")
     FigureCanvasAgg(fig)
     outer = fig.add_gridspec(3, 1, height_ratios=[1.25, 1.0, 1.0])
+    _loop_donuts(fig, outer[0], recs)
+    _loop_zernikes(fig, outer[1], recs)
+    bot = outer[2].subgridspec(1, 2, width_ratios=[1.0, 1.3])
+    _loop_convergence(fig.add_subplot(bot[0, 0]), recs)
+    _loop_dof_state(fig.add_subplot(bot[0, 1]), recs)
+    fig.suptitle(
+        f"cwfs_ros closed loop: camera_sim_node -> wavefront_node -> ofc_node, "
+        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut"
+        + (f", camera rotator {getattr(run.config, 'rotator_angle_deg', 0.0):g} deg"
+           if getattr(run.config, "rotator_angle_deg", 0.0) else ""), fontsize=12)
+    fig.savefig(path, format="png")
+    return path
 
-    # (a) donuts of the kept visits, one row each (at most two rows).
+
+def _loop_donuts(fig: Any, spec: Any, recs: list[Any]) -> None:
+    """Row (a): the donuts of the first and the last visit kept, one row each."""
+    from cwfs_ros.layout import CORNERS, SIDES
+
+    kept = [r for r in recs if r.images]
     rows = kept[:1] + kept[-1:] if len(kept) > 1 else kept
-    top = outer[0].subgridspec(max(len(rows), 1), len(CORNERS) * len(SIDES))
+    top = spec.subgridspec(max(len(rows), 1), len(CORNERS) * len(SIDES))
     for i, r in enumerate(rows):
         for j, (c, s) in enumerate((c, s) for c in CORNERS for s in SIDES):
             ax = fig.add_subplot(top[i, j])
@@ -221,8 +251,13 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
         ax = fig.add_subplot(top[0, 0])
         ax.text(0.5, 0.5, "no donuts kept", transform=ax.transAxes)
 
-    # (b) Zernikes per corner: estimate vs truth, design removed.
-    mid = outer[1].subgridspec(1, len(CORNERS))
+
+def _loop_zernikes(fig: Any, spec: Any, recs: list[Any]) -> None:
+    """Row (b): per corner, estimate against truth with the design removed (what the loop
+    corrects): the first visit as bars, the last as markers."""
+    from cwfs_ros.layout import CORNERS, NOLL
+
+    mid = spec.subgridspec(1, len(CORNERS))
     first, last = recs[0], recs[-1]
     noll = np.asarray(NOLL)
     n = len(noll)
@@ -251,9 +286,13 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
             ax.legend(fontsize=7)
         ax.grid(axis="y", alpha=0.3)
 
-    # (c) convergence and DoF state.
-    bot = outer[2].subgridspec(1, 2, width_ratios=[1.0, 1.3])
-    ax = fig.add_subplot(bot[0, 0])
+
+def _loop_convergence(ax: Any, recs: list[Any]) -> None:
+    """Row (c), left: the true (corners, science field) and measured wavefront error per
+    visit, the estimate's own error on the same norm, and the refused corrections."""
+    from cwfs_ros.layout import NOLL
+
+    n = len(NOLL)
     v = np.array([r.visit for r in recs])
     true_e = np.array([r.true_error_nm for r in recs])
     est_e = np.array([r.estimated_error_nm for r in recs])
@@ -285,11 +324,13 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
 
-    # DoF state in units of each DoF's range (config/ofc/dof.yaml), rms per group: how
-    # far each actuator group is from nominal, on one physical scale.
+
+def _loop_dof_state(ax: Any, recs: list[Any]) -> None:
+    """Row (c), right: the DoF state in units of each DoF's range (config/ofc/dof.yaml), rms
+    per group: how far each actuator group is from nominal, on one physical scale."""
     from cwfs_ros.ofc.control import load_dof_spec
 
-    ax = fig.add_subplot(bot[0, 1])
+    v = np.array([r.visit for r in recs])
     state = np.array([r.dof_state for r in recs]) / load_dof_spec().range
     groups = (("M2 hexapod", slice(0, 5)), ("camera hexapod", slice(5, 10)),
               ("M1M3 bending modes", slice(10, 30)), ("M2 bending modes", slice(30, 50)))
@@ -302,11 +343,3 @@ def plot_closed_loop(run: Any, path: str | Path) -> Path:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title("telescope state per actuator group (0 = nominal)", fontsize=10)
-
-    fig.suptitle(
-        f"cwfs_ros closed loop: camera_sim_node -> wavefront_node -> ofc_node, "
-        f"{len(recs)} visits, {run.config.n_photons:g} photons per donut"
-        + (f", camera rotator {getattr(run.config, 'rotator_angle_deg', 0.0):g} deg"
-           if getattr(run.config, "rotator_angle_deg", 0.0) else ""), fontsize=12)
-    fig.savefig(path, format="png")
-    return path
