@@ -38,12 +38,13 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from cwfs_msgs.msg import DofCorrection, SimTruth
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image, JointState
@@ -86,6 +87,8 @@ __all__ = ["CameraSimNode", "N_DOF", "RIGID_SCALE", "SIDES", "main"]
 NODE_NAME = "camera_sim_node"
 JOINT_STATES_TOPIC = "joint_states"
 ROTATOR_JOINT = "camera_rotator"
+# ``declare(name, descriptor)`` of :func:`~cwfs_ros.ros.common.bundled_declarer`.
+Declare = Callable[[str, ParameterDescriptor], Any]
 ROTATOR_RANGE_DEG = (-270.0, 270.0)
 
 
@@ -103,6 +106,36 @@ class CameraSimNode(Node):
         super().__init__(node_name, **kwargs)
         self._lock = threading.RLock()
         self._declare_parameters()
+        self._init_optics()
+        # Its workers end with this process, even one killed outright (docs/reliability.md).
+        self._pool = guard_pool_workers(make_render_pool(int(self._param("render_workers"))))
+        self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
+                      "corrections_applied": 0, "corrections_ignored": 0}
+        self.ignored = RejectionCounter()
+        self._init_correction_guard()
+        self.visit = 0
+        self.last_render_s = float("nan")
+        self.last_status = "no visit yet"
+        self.last_frame_stars: dict = {}
+        self.last_true_error_nm = float("nan")
+        self.last_field_error_nm = float("nan")
+        self.last_fwhm_arcsec = float("nan")
+        self.last_rotator_angle_deg = float(self._param("rotator_angle_deg"))
+        self._busy = False
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        period = self._init_interfaces()
+        p = self._param
+        self.get_logger().info(
+            f"camera simulator ready: band {self.band} ({self.wavelength_nm:g} nm), "
+            f"{p('npix')} px stamps, {p('n_photons'):.3g} photons, "
+            + (f"a visit every {period:g} s" if period > 0 else "visits on ~/trigger only")
+            + f", apply_corrections {p('apply_corrections')}, "
+            f"|dof| {np.linalg.norm(self._dof):.4g}")
+
+    def _init_optics(self) -> None:
+        """The band, wavelength, starting telescope state, random streams and corner
+        geometry from the parameters; a bad value raises here, before any visit."""
         p = self._param
         self.band = str(p("band"))
         if self.band not in BANDS:
@@ -135,24 +168,9 @@ class CameraSimNode(Node):
         self._intrinsic_by_angle: dict[float, np.ndarray] = {}
         self.intrinsic_nm = self._intrinsic(0.0)
 
-        # Its workers end with this process, even one killed outright (docs/reliability.md).
-        self._pool = guard_pool_workers(make_render_pool(int(p("render_workers"))))
-        self.stats = {"visits_rendered": 0, "visits_skipped": 0, "visits_failed": 0,
-                      "corrections_applied": 0, "corrections_ignored": 0}
-        self.ignored = RejectionCounter()
-        self._init_correction_guard()
-        self.visit = 0
-        self.last_render_s = float("nan")
-        self.last_status = "no visit yet"
-        self.last_frame_stars: dict = {}
-        self.last_true_error_nm = float("nan")
-        self.last_field_error_nm = float("nan")
-        self.last_fwhm_arcsec = float("nan")
-        self.last_rotator_angle_deg = float(p("rotator_angle_deg"))
-        self._busy = False
-        self._closing = False
-        self._thread: threading.Thread | None = None
-
+    def _init_interfaces(self) -> float:
+        """Publishers, the correction subscription, ~/trigger and the timers, created last
+        (nothing arrives before the state exists); returns the visit period [s]."""
         self.pubs = {(c, s): self.create_publisher(Image, image_topic(c, s),
                                                    IMAGE_QOS)
                      for c in CORNERS for s in SIDES}
@@ -164,98 +182,24 @@ class CameraSimNode(Node):
         self.sub = self.create_subscription(DofCorrection, CORRECTION_TOPIC,
                                             self._on_correction, OUTPUT_QOS)
         self.srv = self.create_service(Trigger, "~/trigger", self._on_trigger)
-        period = float(p("visit_period_s"))
+        period = float(self._param("visit_period_s"))
         self._visit_timer = (self.create_timer(period, self._on_period) if period > 0 else None)
-        self._diag_timer = self.create_timer(float(p("diagnostics_period_s")),
+        self._diag_timer = self.create_timer(float(self._param("diagnostics_period_s")),
                                              self.publish_diagnostics)
         self.add_on_set_parameters_callback(self._validate_parameters)
-        self.get_logger().info(
-            f"camera simulator ready: band {self.band} ({self.wavelength_nm:g} nm), "
-            f"{p('npix')} px stamps, {p('n_photons'):.3g} photons, "
-            + (f"a visit every {period:g} s" if period > 0 else "visits on ~/trigger only")
-            + f", apply_corrections {p('apply_corrections')}, "
-            f"|dof| {np.linalg.norm(self._dof):.4g}")
+        return period
 
     # ------------------------------------------------------------------ parameters
     def _param(self, name: str):
         return self.get_parameter(name).value
 
     def _declare_parameters(self) -> None:
+        """Declare every parameter, defaults from config/params.yaml, by concern."""
         d = bundled_declarer(self, "camera_sim_node")
-        ro = {"read_only": True}
-        d("initial_dof", describe(
-            "Initial telescope state: 50 DoF, ts_ofc order and units [um | deg], batoid_rubin "
-            "(DofCorrection) signs.", **ro))
-        d("perturbation_seed", describe(
-            "Seed of a random rigid-body perturbation added to DoF 0-9 at start (-1 = none).",
-            int_range=(-1, 2**31 - 1), **ro))
-        d("perturbation_scale", describe(
-            "Scale of that perturbation: normal(0,1) x scale x [8, 150, 150, 0.005, 0.005] "
-            "[um, um, um, deg, deg] per hexapod.", fp_range=(0.0, 100.0), **ro))
-        d("band", describe("Filter band of the optical model.",
-                           constraints="u | g | r | i | z | y", **ro))
-        d("wavelength_nm", describe(
-            "Monochromatic wavelength [nm]; 0 = the band's effective wavelength (r: 622).",
-            fp_range=(0.0, 2000.0), **ro))
-        d("visit_period_s", describe(
-            "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
-            "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
-        d("n_photons", describe(
-            "Expected photons per donut (unvignetted pupil).", fp_range=(1.0, 1e9), **ro))
-        d("sky_per_pixel", describe(
-            "Sky background [e-/px], added before Poisson noise and subtracted after.",
-            fp_range=(0.0, 1e6), **ro))
-        d("offset_px_max", describe(
-            "Random donut offset in each axis, uniform in +-offset_px_max [px].",
-            fp_range=(0.0, 1000.0), **ro))
-        d("npix", describe("Stamp side [px].", int_range=(16, 4096), **ro))
-        d("seeing_fwhm_arcsec", describe(
-            "Gaussian seeing blur FWHM [arcsec] of every donut, stamps and frames; 0 = none.",
-            fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC), **ro))
-        d("read_noise_e", describe(
-            "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
-        d("frames", describe(
-            "Publish half-chip frames with several stars (random positions and brightness, "
-            "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
-            "then selects, pairs and combines the donuts.", **ro))
-        d("frame_rows", describe("Frame rows [px] (frames mode).",
-                                 int_range=(200, 8192), **ro))
-        d("frame_cols", describe("Frame columns [px] (frames mode).",
-                                 int_range=(200, 8192), **ro))
-        d("frame_stars_min", describe("Fewest isolated stars per frame.",
-                                      int_range=(0, 50), **ro))
-        d("frame_stars_max", describe("Most isolated stars per frame.",
-                                      int_range=(0, 50), **ro))
-        d("frame_flux_min", describe("Photons of the faintest isolated star.",
-                                     fp_range=(1.0, 1e9), **ro))
-        d("frame_flux_max", describe("Photons of the brightest isolated star.",
-                                     fp_range=(1.0, 1e9), **ro))
-        d("frame_blend", describe("Add a blended pair to each frame.", **ro))
-        d("frame_faint", describe("Add a too-faint star to each frame.", **ro))
-        d("render_workers", describe(
-            "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
-            "1 = in the node's render thread). The images do not depend on it.",
-            int_range=(0, 64), **ro))
-        d("rotator_angle_deg", describe(
-            "Camera rotator angle [deg] (batoid_rubin's with_rtp: the camera turned by "
-            "RotZ(angle) before the DoF are applied), read at the start of each visit and "
-            "published on joint_states as joint camera_rotator [rad].",
-            fp_range=ROTATOR_RANGE_DEG))
-        d("apply_corrections", describe(
-            "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
-        d("actuator_noise", describe(
-            "Relative actuator error: each applied DoF is scaled by (1 + actuator_noise x "
-            "normal(0,1)).", fp_range=(0.0, 10.0)))
-        d("render_seed", describe(
-            "Seed of the image noise, offsets and actuator noise (-1 = fresh entropy).",
-            int_range=(-1, 2**31 - 2), **ro))
-        d("frame_id", describe("frame_id of the images and SimTruth.", **ro))
-        d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
-                                           fp_range=(0.05, 60.0)))
-        d("correction_max_step_scale", describe(
-            "Largest |step| of a correction applied, as a multiple of dof.yaml's max_step "
-            "(ofc_node's own limit is max_step_scale x the same); beyond it the correction "
-            "is ignored (step_limit); 0 = no limit.", fp_range=(0.0, 100.0), **ro))
+        _declare_optics_parameters(d)
+        _declare_image_parameters(d)
+        _declare_frame_parameters(d)
+        _declare_runtime_parameters(d)
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         for prm in params:
@@ -575,3 +519,96 @@ def main(args: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _declare_optics_parameters(d: Declare) -> None:
+    """The telescope's starting state and the optical model (read-only)."""
+    ro = {"read_only": True}
+    d("initial_dof", describe(
+        "Initial telescope state: 50 DoF, ts_ofc order and units [um | deg], batoid_rubin "
+        "(DofCorrection) signs.", **ro))
+    d("perturbation_seed", describe(
+        "Seed of a random rigid-body perturbation added to DoF 0-9 at start (-1 = none).",
+        int_range=(-1, 2**31 - 1), **ro))
+    d("perturbation_scale", describe(
+        "Scale of that perturbation: normal(0,1) x scale x [8, 150, 150, 0.005, 0.005] "
+        "[um, um, um, deg, deg] per hexapod.", fp_range=(0.0, 100.0), **ro))
+    d("band", describe("Filter band of the optical model.",
+                       constraints="u | g | r | i | z | y", **ro))
+    d("wavelength_nm", describe(
+        "Monochromatic wavelength [nm]; 0 = the band's effective wavelength (r: 622).",
+        fp_range=(0.0, 2000.0), **ro))
+
+
+def _declare_image_parameters(d: Declare) -> None:
+    """Visit cadence and what each stamp holds: photons, sky, offsets, blur, noise."""
+    ro = {"read_only": True}
+    d("visit_period_s", describe(
+        "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
+        "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
+    d("n_photons", describe(
+        "Expected photons per donut (unvignetted pupil).", fp_range=(1.0, 1e9), **ro))
+    d("sky_per_pixel", describe(
+        "Sky background [e-/px], added before Poisson noise and subtracted after.",
+        fp_range=(0.0, 1e6), **ro))
+    d("offset_px_max", describe(
+        "Random donut offset in each axis, uniform in +-offset_px_max [px].",
+        fp_range=(0.0, 1000.0), **ro))
+    d("npix", describe("Stamp side [px].", int_range=(16, 4096), **ro))
+    d("seeing_fwhm_arcsec", describe(
+        "Gaussian seeing blur FWHM [arcsec] of every donut, stamps and frames; 0 = none.",
+        fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC), **ro))
+    d("read_noise_e", describe(
+        "Gaussian read noise per pixel [e-]; 0 = none.", fp_range=(0.0, 1000.0), **ro))
+
+
+def _declare_frame_parameters(d: Declare) -> None:
+    """The half-chip frames mode: frame size and the stars it holds."""
+    ro = {"read_only": True}
+    d("frames", describe(
+        "Publish half-chip frames with several stars (random positions and brightness, "
+        "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
+        "then selects, pairs and combines the donuts.", **ro))
+    d("frame_rows", describe("Frame rows [px] (frames mode).",
+                             int_range=(200, 8192), **ro))
+    d("frame_cols", describe("Frame columns [px] (frames mode).",
+                             int_range=(200, 8192), **ro))
+    d("frame_stars_min", describe("Fewest isolated stars per frame.",
+                                  int_range=(0, 50), **ro))
+    d("frame_stars_max", describe("Most isolated stars per frame.",
+                                  int_range=(0, 50), **ro))
+    d("frame_flux_min", describe("Photons of the faintest isolated star.",
+                                 fp_range=(1.0, 1e9), **ro))
+    d("frame_flux_max", describe("Photons of the brightest isolated star.",
+                                 fp_range=(1.0, 1e9), **ro))
+    d("frame_blend", describe("Add a blended pair to each frame.", **ro))
+    d("frame_faint", describe("Add a too-faint star to each frame.", **ro))
+
+
+def _declare_runtime_parameters(d: Declare) -> None:
+    """Rendering workers, the rotator, how corrections are applied, seeds and outputs."""
+    ro = {"read_only": True}
+    d("render_workers", describe(
+        "Processes that ray-trace a visit's 8 donuts in parallel (0 = one per CPU, "
+        "1 = in the node's render thread). The images do not depend on it.",
+        int_range=(0, 64), **ro))
+    d("rotator_angle_deg", describe(
+        "Camera rotator angle [deg] (batoid_rubin's with_rtp: the camera turned by "
+        "RotZ(angle) before the DoF are applied), read at the start of each visit and "
+        "published on joint_states as joint camera_rotator [rad].",
+        fp_range=ROTATOR_RANGE_DEG))
+    d("apply_corrections", describe(
+        "Apply valid, non-dry-run DofCorrections to the state (false = observe only)."))
+    d("actuator_noise", describe(
+        "Relative actuator error: each applied DoF is scaled by (1 + actuator_noise x "
+        "normal(0,1)).", fp_range=(0.0, 10.0)))
+    d("render_seed", describe(
+        "Seed of the image noise, offsets and actuator noise (-1 = fresh entropy).",
+        int_range=(-1, 2**31 - 2), **ro))
+    d("frame_id", describe("frame_id of the images and SimTruth.", **ro))
+    d("diagnostics_period_s", describe("Period of /diagnostics [s].", read_only=True,
+                                       fp_range=(0.05, 60.0)))
+    d("correction_max_step_scale", describe(
+        "Largest |step| of a correction applied, as a multiple of dof.yaml's max_step "
+        "(ofc_node's own limit is max_step_scale x the same); beyond it the correction "
+        "is ignored (step_limit); 0 = no limit.", fp_range=(0.0, 100.0), **ro))
