@@ -260,7 +260,19 @@ class WavefrontNode(ManagedNode):
         return self.get_parameter(name).value
 
     def _declare_parameters(self) -> None:
+        """Declare every parameter, defaults from config/params.yaml, by concern."""
         d = bundled_declarer(self, "wavefront_node")
+        self._declare_estimator_parameters(d)
+        self._declare_visit_parameters(d)
+        self._declare_input_parameters(d)
+        d("diagnostics_period_s", describe("Period of /diagnostics [s].",
+                                                read_only=True, fp_range=(0.05, 60.0)))
+        self._declare_orientation_parameters(d)
+        self._declare_guard_parameters(d)
+
+    @staticmethod
+    def _declare_estimator_parameters(d) -> None:
+        """The optical model and the estimator's settings."""
         d("instrument", describe(
             "Instrument model: a config/instruments/<name>.yaml name or a path to one."))
         d("band", describe("Filter band of the optical model.",
@@ -280,6 +292,10 @@ class WavefrontNode(ManagedNode):
             "lsq and exp solvers take the blur's edge signal out of the difference image "
             "(docs/accuracy.md, Seeing); 0 = not given: no such correction.",
             fp_range=(0.0, MAX_SEEING_FWHM_ARCSEC)))
+
+    @staticmethod
+    def _declare_visit_parameters(d) -> None:
+        """Pairing and visit assembly: timing, workers, the corners served, outputs' frame."""
         d("pairing_tolerance_s", describe(
             "Intra/extra (and corner) stamps closer than this [s] belong to the same visit.",
             fp_range=(0.0, 10.0)))
@@ -300,6 +316,10 @@ class WavefrontNode(ManagedNode):
             "Corner field-point YAML; empty = config/sensors/lsst_corners.yaml.",
             read_only=True))
         d("frame_id", describe("frame_id of the published messages."))
+
+    @staticmethod
+    def _declare_input_parameters(d) -> None:
+        """What the images are (stamps or frames), donut selection and image QoS."""
         d("input_mode", describe(
             "What the images are: stamps (one donut each, oriented by sensors.*), frames (a "
             "half-chip each with several stars: detection, per-star field, pairing and "
@@ -316,8 +336,10 @@ class WavefrontNode(ManagedNode):
             "corner's visit) or best_effort (needed to hear a camera that publishes with "
             "sensor_data QoS: a reliable subscription never matches a best-effort "
             "publisher).", constraints="reliable | best_effort", read_only=True))
-        d("diagnostics_period_s", describe("Period of /diagnostics [s].",
-                                                read_only=True, fp_range=(0.05, 60.0)))
+
+    @staticmethod
+    def _declare_orientation_parameters(d) -> None:
+        """Each half-chip's rotation and flip into the focal-plane frame."""
         for c in CORNERS:
             for s in SIDES:
                 d(f"sensors.{c}.{s}.rot90", describe(
@@ -327,7 +349,6 @@ class WavefrontNode(ManagedNode):
                 d(f"sensors.{c}.{s}.flip", describe(
                     f"Flip of the {c} {s} image after the rotation: none, lr (x -> -x) or "
                     "ud (y -> -y).", constraints=" | ".join(FLIPS)))
-        self._declare_guard_parameters(d)
 
     @staticmethod
     def _declare_guard_parameters(d) -> None:
