@@ -53,39 +53,9 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
     noise, at no ray-tracing cost per trial.  The truth is ``true_zernikes_nm`` at the
     mid-point field.  The check: the noise part (spread over seeds) falls as N^-1/2.
     """
-    from cwfs_ros.sim.render import (
-        RenderSettings,
-        load_corner_geometry,
-        render_donut,
-        true_zernikes_nm,
-    )
-    from cwfs_ros.sim.telescope import load_lsst
-
-    c = load_corner_geometry()["R44"]
-    tel = load_lsst("r")
-    wl = 622.0
-    fi, fe, mid = c.intra_field_deg, c.extra_field_deg, c.mid_field_deg
-    rng = np.random.default_rng(opts.seed + 11)
-    n_rays = int(8e6 if not opts.quick else 3e6)
-    # Probability per pixel of one photon entering the unvignetted pupil.
-    unit = RenderSettings(wavelength_nm=wl, npix=SPLIT.npix, n_photons=1.0, n_rays=n_rays,
-                          poisson=False)
-    probs = [render_donut(tel, f, s * SPLIT.defocus_mm, unit, rng=rng)
-             for f, s in ((fi, -1.0), (fe, 1.0))]
-    truth = true_zernikes_nm(tel, mid, wavelength_nm=wl, eps=EPS)
     levels = np.array(opts.noise_levels, float)
     sky = opts.noise_sky
-    errs = np.full((levels.size, opts.noise_seeds, 19), np.nan)
-    for a, n in enumerate(levels):
-        for s in range(opts.noise_seeds):
-            imgs = [rng.poisson(p * n + sky).astype(float) - sky for p in probs]
-            try:
-                r = estimate_pair(*imgs, fi, fe, band="r", wavelength_nm=wl,
-                              defocal_offset_mm=SPLIT.defocus_mm)
-                if not r.caustic:
-                    errs[a, s] = r.zernikes_nm - truth
-            except Exception:  # noqa: BLE001 - too faint to measure: counted as a failure
-                pass
+    errs, sky_e = _noise_trials(opts, levels)
     total = np.sqrt(np.nansum(errs**2, axis=2))
     total[np.all(np.isnan(errs), axis=2)] = np.nan
     med = np.array([np.nanmedian(t) if np.isfinite(t).any() else np.nan for t in total])
@@ -97,7 +67,6 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
         per_term = np.sqrt(np.nanmean(errs**2, axis=1))  # (levels, 19) rms over seeds
     # Shot noise of N photons on B sky electrons under the donut: sigma ~ sqrt(N + B) / N
     # (N^-1 while the sky dominates, N^-1/2 once the star does).
-    sky_e = sky * 0.5 * sum(int(np.count_nonzero(p)) for p in probs)
     model = np.sqrt(levels + sky_e) / levels
     use = np.isfinite(noise) & (fails == 0) & (noise > 0)
     slope = float(np.polyfit(np.log(model[use]), np.log(noise[use]), 1)[0]) \
@@ -122,6 +91,45 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
                  "floor_nm": bright})
     return [v], {"photons": levels, "median": med, "noise": noise, "per_term": per_term,
                  "lim10": lim10, "lim50": lim50, "sky": sky}
+
+
+def _noise_trials(opts: Options, levels: np.ndarray) -> tuple[np.ndarray, float]:
+    """The Z4..Z22 errors (nm) of ``opts.noise_seeds`` Poisson trials per photon level,
+    ``(levels, seeds, 19)`` with NaN for a failed or caustic-flagged trial, and the sky
+    electrons under one donut (the mean of the two: B of the shot-noise model)."""
+    from cwfs_ros.sim.render import (
+        RenderSettings,
+        load_corner_geometry,
+        render_donut,
+        true_zernikes_nm,
+    )
+    from cwfs_ros.sim.telescope import load_lsst
+
+    c = load_corner_geometry()["R44"]
+    tel = load_lsst("r")
+    wl = 622.0
+    fi, fe, mid = c.intra_field_deg, c.extra_field_deg, c.mid_field_deg
+    rng = np.random.default_rng(opts.seed + 11)
+    n_rays = int(8e6 if not opts.quick else 3e6)
+    # Probability per pixel of one photon entering the unvignetted pupil.
+    unit = RenderSettings(wavelength_nm=wl, npix=SPLIT.npix, n_photons=1.0, n_rays=n_rays,
+                          poisson=False)
+    probs = [render_donut(tel, f, s * SPLIT.defocus_mm, unit, rng=rng)
+             for f, s in ((fi, -1.0), (fe, 1.0))]
+    truth = true_zernikes_nm(tel, mid, wavelength_nm=wl, eps=EPS)
+    sky = opts.noise_sky
+    errs = np.full((levels.size, opts.noise_seeds, 19), np.nan)
+    for a, n in enumerate(levels):
+        for s in range(opts.noise_seeds):
+            imgs = [rng.poisson(p * n + sky).astype(float) - sky for p in probs]
+            try:
+                r = estimate_pair(*imgs, fi, fe, band="r", wavelength_nm=wl,
+                                  defocal_offset_mm=SPLIT.defocus_mm)
+                if not r.caustic:
+                    errs[a, s] = r.zernikes_nm - truth
+            except Exception:  # noqa: BLE001 - too faint to measure: counted as a failure
+                pass
+    return errs, sky * 0.5 * sum(int(np.count_nonzero(p)) for p in probs)
 
 
 def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
@@ -152,29 +160,15 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
     results: dict[str, Any] = {}
     inputs = {"ideal sensor": y_true}
     if opts.solver_render:
-        rng = np.random.default_rng(opts.seed + 13)
-        est = []
-        for c in corners.values():
-            intra, extra = lsst_pair(tel, c.intra_field_deg, c.extra_field_deg, SPLIT, wl,
-                                      opts.solver_photons, rng)
-            r = estimate_pair(intra, extra, c.intra_field_deg, c.extra_field_deg, band="r",
-                          wavelength_nm=wl, defocal_offset_mm=SPLIT.defocus_mm)
-            est.append(r.zernikes_nm)
-        inputs["estimated (split pairs)"] = np.concatenate(est)
+        inputs["estimated (split pairs)"] = _estimated_corners(opts, tel, corners, wl)
     for label, y in inputs.items():
         e = solver.estimate(y)
         after = true_error_of_state_nm(dof - e.dof_error) if e.valid else float("nan")
         results[label] = dict(before_nm=before, after_nm=after, dof_est=e.dof_error,
                               n_modes=e.n_modes_used, status=e.status)
-    # Split the true state into what the kept modes see and the rest (normalised units).
     w = solver.weights
-    an = sens.matrix_nm * w[None, :]
-    _, s, vt = np.linalg.svd(an, full_matrices=True)
-    z = dof / w
-    kept = vt[:solver.n_modes]
-    z_obs = kept.T @ (kept @ z)
-    frac_norm = float(np.linalg.norm(z_obs) / np.linalg.norm(z))
-    wf_blind = wfe(an @ (z - z_obs)) / 2.0  # per corner: sqrt(sum)/sqrt(4 corners)
+    frac_norm, wf_blind = _observable_part(sens.matrix_nm * w[None, :], dof / w,
+                                           solver.n_modes)
     obs = observability(sens, weights="range-fwhm", rel_tol=1e-3)
     blind = [obs.describe(k, DOF_NAMES) for k in range(len(obs.relative))
              if obs.relative[k] < 1e-3][:6]
@@ -199,3 +193,30 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
                  "blind_directions": blind, "wall_s": time.perf_counter() - t0})
     return [v], {"dof": dof, "results": results, "singular": obs.relative, "weights": w,
                  "n_modes": solver.n_modes, "blind": blind}
+
+
+def _estimated_corners(opts: Options, tel: Any, corners: dict[str, Any],
+                       wl: float) -> np.ndarray:
+    """The 76 coefficients (nm) estimated from a ray-traced split pair at each corner of the
+    perturbed telescope ``tel``."""
+    rng = np.random.default_rng(opts.seed + 13)
+    est = []
+    for c in corners.values():
+        intra, extra = lsst_pair(tel, c.intra_field_deg, c.extra_field_deg, SPLIT, wl,
+                                 opts.solver_photons, rng)
+        r = estimate_pair(intra, extra, c.intra_field_deg, c.extra_field_deg, band="r",
+                          wavelength_nm=wl, defocal_offset_mm=SPLIT.defocus_mm)
+        est.append(r.zernikes_nm)
+    return np.concatenate(est)
+
+
+def _observable_part(an: np.ndarray, z: np.ndarray, n_modes: int) -> tuple[float, float]:
+    """Split the normalised state ``z`` into what the ``n_modes`` kept modes of the
+    normalised matrix ``an`` see and the rest: the seen fraction of its norm, and the
+    wavefront (nm per corner) of the unseen part."""
+    _, _, vt = np.linalg.svd(an, full_matrices=True)
+    kept = vt[:n_modes]
+    z_obs = kept.T @ (kept @ z)
+    frac_norm = float(np.linalg.norm(z_obs) / np.linalg.norm(z))
+    wf_blind = wfe(an @ (z - z_obs)) / 2.0  # per corner: sqrt(sum)/sqrt(4 corners)
+    return frac_norm, wf_blind
