@@ -175,10 +175,8 @@ def solver_recovery(opts: Options) -> tuple[list[Verdict], dict]:
     ideal = results["ideal sensor"]
     ratio = ideal["after_nm"] / before
     ok = bool(np.isfinite(ratio) and ratio <= 0.2)
-    extra = ""
-    if "estimated (split pairs)" in results:
-        ex = results["estimated (split pairs)"]
-        extra = f"; from estimated pairs {ex['after_nm']:.0f} nm"
+    ex = results.get("estimated (split pairs)")
+    extra = f"; from estimated pairs {ex['after_nm']:.0f} nm" if ex is not None else ""
     v = Verdict("Solver (4 corners)", ok,
                 f"{before:.0f} nm -> {ideal['after_nm']:.0f} nm after one gain-1 correction "
                 f"from the ideal sensor ({100 * (1 - ratio):.0f}% removed){extra}; "
