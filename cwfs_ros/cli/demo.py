@@ -249,8 +249,6 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     """
     say = on_status or (lambda _m: None)
     files = _params_files(config, Path(workdir))
-    from cwfs_ros.ros.launch import run_nodes
-
     # rcl reads the discovery range when the context is initialised (in run_nodes, below);
     # the caller's environment is restored once the nodes exist.
     saved_env = os.environ.get(_ISOLATE_ENV)
@@ -263,6 +261,31 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     import rclpy
 
     ctx = rclpy.Context()
+    t0 = time.monotonic()
+    say("starting camera_sim_node, wavefront_node and ofc_node ...")
+    th, started, ready, exit_code = _start_graph(config, files, ctx, domain)
+    try:
+        ready.wait(60)
+        if not config.visible:
+            _restore_env(_ISOLATE_ENV, saved_env)
+        if "nodes" not in started:
+            raise LoopError("the nodes did not start (see the error above)"
+                            + (f", exit code {exit_code[0]}" if exit_code else ""))
+        monitor = LoopMonitor(ctx)
+        started["executor"].add_node(monitor.node)
+        return _drive(config, monitor, started["nodes"], t0, on_visit, say)
+    finally:
+        ctx.try_shutdown()
+        th.join(15)
+
+
+def _start_graph(config: LoopConfig, files: list[Path], ctx: Any, domain: int
+                 ) -> tuple[threading.Thread, dict[str, Any], threading.Event, list[int]]:
+    """Start the three nodes in a thread on ``ctx``; return the thread, what it started (the
+    nodes by name and their executor, once ``ready`` is set) and its exit code, once ended.
+    ``ready`` is set also when a node failed to start."""
+    from cwfs_ros.ros.launch import run_nodes
+
     started: dict[str, Any] = {}
     ready = threading.Event()
     exit_code: list[int] = []
@@ -279,23 +302,9 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
                                    on_ready=on_ready))
         ready.set()  # also when a node failed to start
 
-    t0 = time.monotonic()
-    say("starting camera_sim_node, wavefront_node and ofc_node ...")
     th = threading.Thread(target=spin, name="cwfs_demo_graph", daemon=True)
     th.start()
-    try:
-        ready.wait(60)
-        if not config.visible:
-            _restore_env(_ISOLATE_ENV, saved_env)
-        if "nodes" not in started:
-            raise LoopError("the nodes did not start (see the error above)"
-                            + (f", exit code {exit_code[0]}" if exit_code else ""))
-        monitor = LoopMonitor(ctx)
-        started["executor"].add_node(monitor.node)
-        return _drive(config, monitor, started["nodes"], t0, on_visit, say)
-    finally:
-        ctx.try_shutdown()
-        th.join(15)
+    return th, started, ready, exit_code
 
 
 def _params_files(config: LoopConfig, workdir: Path) -> list[Path]:
