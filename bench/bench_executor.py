@@ -38,6 +38,7 @@ def one_run(kind: str, n_messages: int, rate_hz: float, domain: int) -> dict:
     """One burst on a fresh context; the figures of this process."""
     import rclpy
     from cwfs_msgs.msg import DofCorrection, WavefrontVector
+    from rclpy.parameter import Parameter
 
     from cwfs_ros.ofc import control as C
     from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns
@@ -51,7 +52,11 @@ def one_run(kind: str, n_messages: int, rate_hz: float, domain: int) -> dict:
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
-    ofc = OfcNode(context=ctx)
+    # A fixed rotator and no rate guards, so that every vector is integrated and published
+    # (with the defaults, the vectors without a rotator angle would all be refused).
+    ofc = OfcNode(context=ctx, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed"),
+        Parameter("min_visit_period_s", value=0.0), Parameter("refuse_repeats", value=False)])
     client = rclpy.create_node("bench_client", context=ctx)
     pub = client.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     got: dict[int, float] = {}

@@ -175,7 +175,8 @@ def bench_vectors(m: int) -> None:
 
     print(f"\n== vectors: {m} distinct WavefrontVectors 1 ms apart (stamps), as fast as "
           "possible")
-    node = start_node("ofc_node", "diagnostics_period_s:=0.5")
+    # a fixed rotator: without one, every vector is refused before the rate guard is tested
+    node = start_node("ofc_node", "diagnostics_period_s:=0.5", "rotator_angle_source:=fixed")
     probe = Probe()
     try:
         pub = probe.node.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)

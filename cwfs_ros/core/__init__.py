@@ -1,9 +1,7 @@
-"""Core library: curvature wavefront estimation (no ROS imports).
+"""The stable entry point of the estimator: ``from cwfs_ros.core import estimate_wavefront``.
 
-Modules follow the paper (Xin et al. 2015) and the optics: :mod:`.zernike` (annular basis),
-:mod:`.instrument` (geometry from ``config/``), :mod:`.mapping` (pupil-to-image models),
-:mod:`.donuts` (stamp preparation), :mod:`.compensation` (outer-loop image remapping),
-:mod:`.tie` (the two TIE solvers), :mod:`.estimator` (the algorithm), :mod:`.io` (files).
+A documented re-export kept for scripts written against it; the estimator itself is
+:mod:`cwfs_ros.wfs` (the paper's modules), the package's layout is in docs/design.md.
 """
 
 from cwfs_ros.errors import ConfigError, CwfsError, ImageError
