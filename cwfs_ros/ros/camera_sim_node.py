@@ -331,7 +331,12 @@ class CameraSimNode(Node):
     def _on_period(self) -> None:
         ok, message = self.request_visit()
         if not ok:
-            self.get_logger().warning(f"skipped a visit period: {message}")
+            # Every skip is counted (visits_skipped on /diagnostics); the log says it once a
+            # minute, not at every period of a free-running simulator slower than its period.
+            self.get_logger().warning(
+                f"skipped a visit period: {message} (visit_period_s is shorter than a render; "
+                "each skip is counted as visits_skipped on /diagnostics)",
+                throttle_duration_sec=60.0)
 
     def _on_trigger(self, request: Trigger.Request, response: Trigger.Response):
         response.success, response.message = self.request_visit()
