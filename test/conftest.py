@@ -47,10 +47,21 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+def next_domain() -> int:
+    """A domain id in 0..101, unique within this pytest process (up to 102 uses)."""
+    return (_domain_base + next(_domain_counter)) % _N_DOMAINS
+
+
 @pytest.fixture
 def ros_domain() -> int:
-    """A domain id in 0..101, unique within this pytest process (up to 102 tests)."""
-    return (_domain_base + next(_domain_counter)) % _N_DOMAINS
+    """A domain id of its own for one test (:func:`next_domain`)."""
+    return next_domain()
+
+
+@pytest.fixture(scope="module")
+def ros_domain_module() -> int:
+    """A domain id of its own for a module's shared graph (:func:`next_domain`)."""
+    return next_domain()
 
 
 @pytest.fixture

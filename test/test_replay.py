@@ -19,32 +19,29 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from conftest import wait_for
+from recorded_graph import record_visits, start_graph
 
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("cwfs_ros.sim")
 
-from cwfs_msgs.msg import CornerWavefront, DofCorrection  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
 
 from cwfs_ros.cli import replay as R  # noqa: E402
 from cwfs_ros.cli.main import main as cli_main  # noqa: E402
+from cwfs_ros.layout import CORNERS  # noqa: E402
 from cwfs_ros.ros import bag as B  # noqa: E402
-from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.ros.launch import run_nodes  # noqa: E402
+from cwfs_ros.ros.common import stamp_to_ns  # noqa: E402
+from cwfs_ros.runtime.visits import format_stamp  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 VISITS = 2
-CORNERS = ("R00", "R04", "R40", "R44")
 OVERLAY = {
     "wavefront_node": {"ros__parameters": {"visit_timeout_s": 10.0}},
     "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0}},
@@ -56,11 +53,6 @@ OVERLAY = {
 PLUMBING = {"/rosout", "/parameter_events"}
 
 
-def stamp_text(ns: int) -> str:
-    sec, nsec = divmod(ns, 1_000_000_000)
-    return f"{sec}.{nsec:09d}"
-
-
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory, ros_domain_module):
     """Run the simulated graph for two visits, recording everything; returns what it saw."""
@@ -69,56 +61,12 @@ def recorded_run(tmp_path_factory, ros_domain_module):
     overlay.write_text(yaml.safe_dump(OVERLAY))
     bag_dir = tmp / "run_bag"
     ctx = rclpy.Context()
-    started, ready = {}, threading.Event()
-
-    def on_ready(nodes, executor):
-        started["nodes"] = {n.get_name(): n for n in nodes}
-        started["executor"] = executor
-        ready.set()
-
-    th = threading.Thread(target=run_nodes,
-                          args=(["wavefront_node", "ofc_node", "camera_sim_node"],),
-                          kwargs={"context": ctx, "domain_id": ros_domain_module,
-                                  "params_files": [overlay], "on_ready": on_ready},
-                          daemon=True)
-    th.start()
+    th, started = start_graph(ctx, ros_domain_module, overlay)
     out: dict = {"overlay": overlay, "bag": bag_dir, "tmp": tmp}
     try:
-        assert ready.wait(30), "nodes did not start"
         nodes = started["nodes"]
-        wf, cam = nodes["wavefront_node"], nodes["camera_sim_node"]
-        rec = B.Recorder(bag_dir, context=ctx, storage="mcap")
-        tester = rclpy.create_node("replay_tester", context=ctx)
-        corners: list[CornerWavefront] = []
-        dofs: list[DofCorrection] = []
-        for c in CORNERS:
-            tester.create_subscription(CornerWavefront, f"aos/wfs/{c}/wavefront",
-                                       corners.append, OUTPUT_QOS)
-        tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", dofs.append,
-                                   OUTPUT_QOS)
-        trigger = tester.create_client(Trigger, "camera_sim_node/trigger")
-        started["executor"].add_node(rec.node)
-        started["executor"].add_node(tester)
-        assert trigger.wait_for_service(timeout_sec=10)
-        wait_for(lambda: wf.ready, 60, "wavefront worker warm-up")
-        wait_for(lambda: all(s.get_publisher_count() > 0 for s in rec.subscriptions.values()),
-                 15, "the recorder to match every publisher of the graph")
-        wait_for(lambda: all(p.get_subscription_count() >= 2 for p in cam.pubs.values()), 10,
-                 "the images to have two readers (wavefront_node, recorder)")
-        for k in range(1, VISITS + 1):
-            applied = cam.stats["corrections_applied"]
-            fut = trigger.call_async(Trigger.Request())
-            wait_for(fut.done, 10, "trigger response")
-            assert fut.result().success, fut.result().message
-            wait_for(lambda k=k: len(dofs) >= k, 90, f"DofCorrection of visit {k}")
-            wait_for(lambda a=applied: cam.stats["corrections_applied"] > a, 10,
-                     f"correction {k} applied")
-        # Everything the tester got must be in the bag too before it is closed.
-        wait_for(lambda: rec.counts()["/aos/ofc/dof_correction"] >= VISITS
-                 and all(rec.counts()[f"/aos/wfs/{c}/wavefront"] >= VISITS for c in CORNERS),
-                 10, "the recorder to get the last results")
-        out["summary"] = rec.close()
-        out["live_corners"], out["live_dofs"] = list(corners), list(dofs)
+        out.update(record_visits(ctx, started, bag_dir, VISITS, tester="replay_tester",
+                                 dof_timeout_s=90))
         out["published"] = {
             n.get_name(): dict(n.get_publisher_names_and_types_by_node(n.get_name(),
                                                                        n.get_namespace()))
@@ -130,13 +78,6 @@ def recorded_run(tmp_path_factory, ros_domain_module):
         ctx.try_shutdown()
         th.join(15)
     return out
-
-
-@pytest.fixture(scope="module")
-def ros_domain_module():
-    import conftest
-
-    return (conftest._domain_base + next(conftest._domain_counter)) % conftest._N_DOMAINS
 
 
 def _estimate_next_to_the_corners() -> None:
@@ -225,7 +166,7 @@ def test_replay_reproduces_the_live_corner_wavefronts(recorded_run, replayed):
     by_key = {(r["corner"], r["stamp"]): r for r in rows}
     worst = 0.0
     for m in live:
-        r = by_key[(m.corner, stamp_text(stamp_to_ns(m.header.stamp)))]
+        r = by_key[(m.corner, format_stamp(stamp_to_ns(m.header.stamp)))]
         assert r["valid"] == "1", r["status"]
         assert list(m.noll) == list(range(4, 23))
         z = np.array([float(r[f"Z{j}"]) for j in range(4, 23)])
@@ -235,7 +176,7 @@ def test_replay_reproduces_the_live_corner_wavefronts(recorded_run, replayed):
     # the visits are numbered in stamp order, each with its four corners
     stamps = sorted({stamp_to_ns(m.header.stamp) for m in live})
     for r in rows:
-        assert int(r["visit"]) == 1 + [stamp_text(s) for s in stamps].index(r["stamp"])
+        assert int(r["visit"]) == 1 + [format_stamp(s) for s in stamps].index(r["stamp"])
     print(f"max |Z replay - Z live| = {worst:.3g} nm")
 
 
@@ -249,7 +190,7 @@ def test_replay_reproduces_the_live_dof_corrections(recorded_run, replayed):
     assert len(names) == 50 and names[0] == "M2_dz"
     by_stamp = {r["stamp"]: r for r in rows}
     for m in live:
-        r = by_stamp[stamp_text(stamp_to_ns(m.header.stamp))]
+        r = by_stamp[format_stamp(stamp_to_ns(m.header.stamp))]
         assert r["valid"] == "1", r["status"]
         dof = np.array([float(r[f"dof.{n}"]) for n in names])
         total = np.array([float(r[f"total.{n}"]) for n in names])
@@ -386,7 +327,7 @@ def test_replay_remaps_a_camera_drivers_topics_and_orients_its_stamps(recorded_r
         rows = {(r["corner"], r["stamp"]): r for r in csv.DictReader(f)}
     assert len(rows) == len(recorded_run["live_corners"]) == VISITS * 4
     for live in recorded_run["live_corners"]:
-        row = rows[(live.corner, stamp_text(stamp_to_ns(live.header.stamp)))]
+        row = rows[(live.corner, format_stamp(stamp_to_ns(live.header.stamp)))]
         got = [float(row[f"Z{j}"]) for j in range(4, 23)]
         np.testing.assert_allclose(got, live.zernikes_nm, atol=1e-6)
     # The turned camera without its orientation: R00's estimate is not the live one.
@@ -396,7 +337,7 @@ def test_replay_remaps_a_camera_drivers_topics_and_orients_its_stamps(recorded_r
     live00 = [m for m in recorded_run["live_corners"] if m.corner == "R00"]
     assert any(r["valid"] != "1" or max(
         abs(float(r[f"Z{j}"]) - m.zernikes_nm[j - 4]) for j in range(4, 23)) > 1.0
-        for r in r00 for m in live00 if r["stamp"] == stamp_text(stamp_to_ns(m.header.stamp)))
+        for r in r00 for m in live00 if r["stamp"] == format_stamp(stamp_to_ns(m.header.stamp)))
     # A bad rule or a misspelt parameter: said, nothing run.
     capsys.readouterr()
     assert cli_main([*base, "--out", str(tmp_path / "x"), "--remap", "/nope:=/x"]) == 2

@@ -17,27 +17,22 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from conftest import wait_for
+from recorded_graph import record_visits, start_graph
 
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("cwfs_ros.sim")
 
-from cwfs_msgs.msg import CornerWavefront, DofCorrection  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
 from cwfs_ros.layout import CORNERS, NOLL  # noqa: E402
-from cwfs_ros.ros import bag as B  # noqa: E402
-from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.ros.launch import run_nodes  # noqa: E402
+from cwfs_ros.ros.common import stamp_to_ns  # noqa: E402
+from cwfs_ros.runtime.visits import format_stamp  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 VISITS = 2
@@ -55,77 +50,27 @@ OVERLAY = {
 }
 
 
-def stamp_text(ns: int) -> str:
-    sec, nsec = divmod(ns, 1_000_000_000)
-    return f"{sec}.{nsec:09d}"
-
-
 def _record(ctx, started: dict, bag_dir: Path) -> dict:
     """Trigger the visits with the recorder on the graph's executor; what the tester got."""
     nodes = started["nodes"]
-    wf, cam = nodes["wavefront_node"], nodes["camera_sim_node"]
-    rec = B.Recorder(bag_dir, context=ctx, storage="mcap")
-    tester = rclpy.create_node("replay_frames_tester", context=ctx)
-    corners: list[CornerWavefront] = []
-    dofs: list[DofCorrection] = []
-    for c in CORNERS:
-        tester.create_subscription(CornerWavefront, f"aos/wfs/{c}/wavefront", corners.append,
-                                   OUTPUT_QOS)
-    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", dofs.append,
-                               OUTPUT_QOS)
-    trigger = tester.create_client(Trigger, "camera_sim_node/trigger")
-    started["executor"].add_node(rec.node)
-    started["executor"].add_node(tester)
-    assert trigger.wait_for_service(timeout_sec=10)
-    wait_for(lambda: wf.ready, 60, "wavefront worker warm-up")
-    wait_for(lambda: all(s.get_publisher_count() > 0 for s in rec.subscriptions.values()),
-             15, "the recorder to match every publisher of the graph")
-    wait_for(lambda: all(p.get_subscription_count() >= 2 for p in cam.pubs.values()), 10,
-             "the images to have two readers (wavefront_node, recorder)")
-    for k in range(1, VISITS + 1):
-        applied = cam.stats["corrections_applied"]
-        fut = trigger.call_async(Trigger.Request())
-        wait_for(fut.done, 10, "trigger response")
-        assert fut.result().success, fut.result().message
-        wait_for(lambda k=k: len(dofs) >= k, 120, f"DofCorrection of visit {k}")
-        wait_for(lambda a=applied: cam.stats["corrections_applied"] > a, 10,
-                 f"correction {k} applied")
-    wait_for(lambda: rec.counts()["/aos/ofc/dof_correction"] >= VISITS
-             and all(rec.counts()[f"/aos/wfs/{c}/wavefront"] >= VISITS for c in CORNERS),
-             10, "the recorder to get the last results")
-    rec.close()
-    return {"live_corners": list(corners), "live_dofs": list(dofs),
-            "frame_pairs": wf.stats["frame_pairs"],
-            "stars": dict(cam.last_frame_stars)}
+    out = record_visits(ctx, started, bag_dir, VISITS, tester="replay_frames_tester",
+                        dof_timeout_s=120)
+    return {"live_corners": out["live_corners"], "live_dofs": out["live_dofs"],
+            "frame_pairs": nodes["wavefront_node"].stats["frame_pairs"],
+            "stars": dict(nodes["camera_sim_node"].last_frame_stars)}
 
 
 @pytest.fixture(scope="module")
-def frames_run(tmp_path_factory):
+def frames_run(tmp_path_factory, ros_domain_module):
     """Record two frame visits of the simulated loop, then replay the bag with the CLI."""
-    import conftest
-
-    domain = (conftest._domain_base + next(conftest._domain_counter)) % conftest._N_DOMAINS
     tmp = tmp_path_factory.mktemp("replay_frames")
     overlay = tmp / "overlay.yaml"
     overlay.write_text(yaml.safe_dump(OVERLAY))
     bag_dir = tmp / "frames_bag"
     ctx = rclpy.Context()
-    started, ready = {}, threading.Event()
-
-    def on_ready(nodes, executor):
-        started["nodes"] = {n.get_name(): n for n in nodes}
-        started["executor"] = executor
-        ready.set()
-
-    th = threading.Thread(target=run_nodes,
-                          args=(["wavefront_node", "ofc_node", "camera_sim_node"],),
-                          kwargs={"context": ctx, "domain_id": domain,
-                                  "params_files": [overlay], "on_ready": on_ready},
-                          daemon=True)
-    th.start()
     t0 = time.monotonic()
+    th, started = start_graph(ctx, ros_domain_module, overlay)
     try:
-        assert ready.wait(30), "nodes did not start"
         out = _record(ctx, started, bag_dir)
     finally:
         ctx.try_shutdown()
@@ -166,7 +111,7 @@ def test_replay_gives_the_live_corner_wavefronts(frames_run):
     assert len(frames_run["zernikes"]) == len(live) == VISITS * len(CORNERS)
     worst = 0.0
     for m in live:
-        r = rows[(m.corner, stamp_text(stamp_to_ns(m.header.stamp)))]
+        r = rows[(m.corner, format_stamp(stamp_to_ns(m.header.stamp)))]
         assert r["valid"] == "1", r["status"]
         assert r["status"] == m.status  # the same pairs used, the same ones rejected
         z = np.array([float(r[f"Z{j}"]) for j in NOLL])
@@ -183,7 +128,7 @@ def test_replay_gives_the_live_dof_corrections(frames_run):
     assert len(rows) == VISITS
     names = [h[len("dof."):] for h in frames_run["dof"][0] if h.startswith("dof.")]
     for m in live:
-        r = rows[stamp_text(stamp_to_ns(m.header.stamp))]
+        r = rows[format_stamp(stamp_to_ns(m.header.stamp))]
         assert r["valid"] == "1", r["status"]
         dof = np.array([float(r[f"dof.{n}"]) for n in names])
         total = np.array([float(r[f"total.{n}"]) for n in names])
