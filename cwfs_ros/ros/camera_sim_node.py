@@ -58,11 +58,11 @@ from cwfs_ros.ros.common import (
     OK,
     OUTPUT_QOS,
     WARN,
+    NodeBasics,
     RejectionCounter,
     bundled_declarer,
     describe,
     diagnostic_status,
-    diagnostics_array,
     foreign_publishers,
     ns_to_stamp,
     result,
@@ -99,7 +99,7 @@ def band_wavelength_nm(band: str) -> float:
     return float(load_instrument("lsst").wavelength_nm(band))
 
 
-class CameraSimNode(Node):
+class CameraSimNode(NodeBasics, Node):
     """Simulated corner-sensor camera with a 50-DoF telescope state driven by DofCorrection."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
@@ -190,9 +190,6 @@ class CameraSimNode(Node):
         return period
 
     # ------------------------------------------------------------------ parameters
-    def _param(self, name: str):
-        return self.get_parameter(name).value
-
     def _declare_parameters(self) -> None:
         """Declare every parameter, defaults from config/params.yaml, by concern."""
         d = bundled_declarer(self, "camera_sim_node")
@@ -496,13 +493,6 @@ class CameraSimNode(Node):
             level, message = OK, "rendering" if values[0][1] == "rendering" else "idle"
         return diagnostic_status(f"{self.get_name()}: camera simulator", level, message,
                                  values, hardware_id="aos_camera_sim")
-
-    def publish_diagnostics(self) -> None:
-        try:
-            self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
-                                                    [self.diagnostics()]))
-        except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f"diagnostics failed: {exc}")
 
     def destroy_node(self) -> None:
         with self._lock:

@@ -47,6 +47,7 @@ __all__ = [
     "DIAGNOSTICS_QOS",
     "IMAGE_QOS",
     "ManagedNode",
+    "NodeBasics",
     "OUTPUT_QOS",
     "QosEventMonitor",
     "image_qos",
@@ -387,7 +388,22 @@ def _policy_name(kind) -> str:
     return name.replace("RMW_QOS_POLICY_", "").lower()
 
 
-class ManagedNode(LifecycleNode):
+class NodeBasics:
+    """What every cwfs_ros node does alike (a mixin for rclpy nodes): read a parameter, and
+    publish its ``diagnostics()`` status on ``self.pub_diag`` without ever raising."""
+
+    def _param(self, name: str):
+        return self.get_parameter(name).value
+
+    def publish_diagnostics(self) -> None:
+        try:
+            self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
+                                                    [self.diagnostics()]))
+        except Exception as exc:  # noqa: BLE001 - a diagnostics failure must not stop a node
+            self.get_logger().error(f"diagnostics failed: {exc}")
+
+
+class ManagedNode(NodeBasics, LifecycleNode):
     """A lifecycle node whose resources exist only between configure and cleanup.
 
     Subclasses declare their parameters and the always-on parts (/diagnostics, parameter

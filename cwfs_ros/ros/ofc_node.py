@@ -84,7 +84,6 @@ from cwfs_ros.ros.common import (
     bundled_declarer,
     describe,
     diagnostic_status,
-    diagnostics_array,
     foreign_publishers,
     result,
     stamp_problem,
@@ -189,9 +188,6 @@ class OfcNode(ManagedNode):
         return "vectors are not integrated and no DofCorrection is published"
 
     # ------------------------------------------------------------------ parameters
-    def _param(self, name: str):
-        return self.get_parameter(name).value
-
     def _declare_parameters(self) -> None:
         d = bundled_declarer(self, "ofc_node")
         d("controller", describe(
@@ -652,12 +648,6 @@ class OfcNode(ManagedNode):
                 ("directions_kept", r.n_modes_used), ("directions_dropped", r.n_dropped),
                 ("dropped", r.dropped)]
 
-    def publish_diagnostics(self) -> None:
-        try:
-            self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
-                                                    [self.diagnostics()]))
-        except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f"diagnostics failed: {exc}")
 
 
 def _declare_guard_parameters(d) -> None:

@@ -65,7 +65,6 @@ from cwfs_ros.ros.common import (
     bundled_declarer,
     describe,
     diagnostic_status,
-    diagnostics_array,
     foreign_publishers,
     image_qos,
     result,
@@ -256,9 +255,6 @@ class WavefrontNode(ManagedNode):
         return "images are not processed (counted as rejected.inactive)"
 
     # ------------------------------------------------------------------ parameters
-    def _param(self, name: str):
-        return self.get_parameter(name).value
-
     def _declare_parameters(self) -> None:
         """Declare every parameter, defaults from config/params.yaml, by concern."""
         d = bundled_declarer(self, "wavefront_node")
@@ -752,12 +748,6 @@ class WavefrontNode(ManagedNode):
         out = [corner_topic(c) for c in self.corners]
         return out + [VECTOR_TOPIC] if self.assemble else out
 
-    def publish_diagnostics(self) -> None:
-        try:
-            arr = diagnostics_array(self.get_clock().now().to_msg(), [self.diagnostics()])
-            self.pub_diag.publish(arr)
-        except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f"diagnostics failed: {exc}")
 
 
 def main(args: list[str] | None = None) -> int:
