@@ -280,7 +280,7 @@ class KalmanOFC(C.OFCSolver):
         if problem is not None:
             return self._refused(problem, corners, t0, rotator_angle_deg)
         if upd.obs.n_kept == 0:
-            return self._refused(self._unobservable_message(upd.obs), corners, t0,
+            return self._refused(self._unobservable(upd.obs), corners, t0,
                                  rotator_angle_deg)
         u_m = self._correction(at, upd.x)
         if not self._finite_outcome(upd, u_m):
@@ -384,7 +384,7 @@ class KalmanOFC(C.OFCSolver):
         dirs = obs.dropped_dirs * self.prior_sigma[self.dof_mask][None, :]
         return np.array([self._field_rms(F, weights, d) for d in dirs])
 
-    def _unobservable_message(self, obs: Observability) -> Problem:
+    def _unobservable(self, obs: Observability) -> Problem:
         names = [self.spec.names[i] for i in np.flatnonzero(self.dof_mask)]
         return Problem("unobservable", f"the valid corners see no combination of the DoF in "
                        f"dof_mask above min_snr {self.settings.min_snr:g} (best "
