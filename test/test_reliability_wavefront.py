@@ -20,8 +20,9 @@ from sensor_msgs.msg import Image  # noqa: E402
 from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.ros.convert import image_msg  # noqa: E402
 from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.wavefront_node import WavefrontNode, frame_id_problem  # noqa: E402
+from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
+from cwfs_ros.runtime.pipeline import frame_id_problem  # noqa: E402
 
 T = 1_750_000_000_000_000_000
 SEC = 1_000_000_000

@@ -41,8 +41,6 @@ from rcl_interfaces.msg import (
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from cwfs_ros.errors import Problem
-
 __all__ = [
     "DIAGNOSTICS_QOS",
     "IMAGE_QOS",
@@ -156,14 +154,6 @@ def result(ok: bool, reason: str = "") -> SetParametersResult:
 
 def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def stamp_problem(stamp: Time) -> Problem | None:
-    """Why a header stamp cannot be used, or None: the rule of
-    :func:`cwfs_ros.runtime.pipeline.stamp_problem` (shared with the offline replay)."""
-    from cwfs_ros.runtime.pipeline import stamp_problem as rule
-
-    return rule(stamp)
 
 
 def ns_to_stamp(ns: int) -> Time:

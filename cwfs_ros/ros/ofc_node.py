@@ -86,11 +86,11 @@ from cwfs_ros.ros.common import (
     diagnostic_status,
     foreign_publishers,
     result,
-    stamp_problem,
     stamp_to_ns,
     string_param_problem,
 )
 from cwfs_ros.ros.convert import dof_correction_msg, vector_from_msg
+from cwfs_ros.runtime.pipeline import stamp_problem
 
 __all__ = ["OfcNode", "build_solver", "main"]
 

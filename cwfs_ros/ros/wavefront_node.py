@@ -68,7 +68,6 @@ from cwfs_ros.ros.common import (
     foreign_publishers,
     image_qos,
     result,
-    stamp_problem,
     stamp_to_ns,
     string_param_problem,
 )
@@ -81,8 +80,8 @@ from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool
 from cwfs_ros.runtime.pipeline import SETTINGS_PARAMS as _SETTINGS_PARAMS
 from cwfs_ros.runtime.pipeline import (
     WavefrontPipeline,
-    frame_id_problem,
     served_corners,
+    stamp_problem,
 )
 from cwfs_ros.runtime.visits import (
     CornerEntry,
@@ -95,7 +94,7 @@ from cwfs_ros.wfs.blur import MAX_SEEING_FWHM_ARCSEC
 from cwfs_ros.wfs.orientation import FLIPS
 from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
 
-__all__ = ["WavefrontNode", "frame_id_problem", "main"]
+__all__ = ["WavefrontNode", "main"]
 
 NODE_NAME = "wavefront_node"
 _SOLVERS = ("exp", "fft", "lsq")
