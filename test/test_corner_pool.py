@@ -75,7 +75,7 @@ def test_a_late_crash_report_does_not_restart_the_new_worker():
     pool = CornerPool(["R00"], n_workers=1)
     try:
         tiny = np.ones((1, 1))
-        killer = pool._submit("R00", os._exit, 3)
+        killer = pool._submit_on("R00", os._exit, 3)[0]
         first = pool.submit(job(tiny, tiny, "R00"))
         second = pool.submit(job(tiny, tiny, "R00"))
         started: list = []
@@ -97,7 +97,7 @@ def test_pool_affinity_and_recovery_from_a_dead_worker():
         assert pool.affinity == {"R00": 0, "R04": 1, "R40": 0}
         tiny = np.ones((1, 1))
         # kill R00's worker while a job is queued behind the kill
-        killer = pool._submit("R00", os._exit, 3)
+        killer = pool._submit_on("R00", os._exit, 3)[0]
         queued = pool.submit(job(tiny, tiny, "R00"))
         out = queued.result(timeout=60)
         assert killer.exception(timeout=60) is not None

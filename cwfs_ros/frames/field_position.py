@@ -287,4 +287,35 @@ def half_chip_model(half: HalfChip, instrument: str | Instrument = "lsst", band:
                        half.reference(shp))
 
 
-__all__ += ["half_chip_model"]
+__all__ += ["half_chip_model", "corner_star_fields"]
+
+
+def corner_star_fields(halves: dict[str, HalfChip], instrument: str | Instrument = "lsst",
+                       band: str = "r", step_px: float = 250.0
+                       ) -> tuple[dict[str, list[tuple[float, float]]],
+                                  list[tuple[float, float]]]:
+    """Where a corner's stars can be: the fields (deg) of a grid of pixels over each
+    configured half-chip (every ``step_px`` and its edges, 0.5 mm beyond them for the donut
+    centroid offsets), and the mid-points of every intra/extra pair of those.
+
+    A field tile is 0.125 deg, ~2250 px: a grid finer than that touches every tile a star
+    of the half-chip can fall in (:func:`cwfs_ros.wfs.estimator.warm_star_fields`).
+    """
+    inst = load_instrument(instrument) if isinstance(instrument, str) else instrument
+    side_fields: dict[str, list[tuple[float, float]]] = {}
+    margin_px = 500.0 / float(inst.pixel_size_um)
+    for side, half in halves.items():
+        model = half_chip_model(half, inst, band)
+        rows, cols = half.shape_px
+        cx = np.linspace(-margin_px, cols + margin_px, int(np.ceil(cols / step_px)) + 3)
+        cy = np.linspace(-margin_px, rows + margin_px, int(np.ceil(rows / step_px)) + 3)
+        gx, gy = np.meshgrid(cx, cy)
+        fx, fy = model.field_of_pixel(gx.ravel(), gy.ravel())
+        side_fields[side] = [(float(a), float(b)) for a, b in zip(fx, fy, strict=True)]
+    intra = np.array(side_fields.get("intra", []))
+    extra = np.array(side_fields.get("extra", []))
+    mids: list[tuple[float, float]] = []
+    if intra.size and extra.size:
+        m = 0.5 * (intra[:, None, :] + extra[None, :, :])
+        mids = [(float(a), float(b)) for a, b in m.reshape(-1, 2)]
+    return side_fields, mids

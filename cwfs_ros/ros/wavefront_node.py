@@ -49,7 +49,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
-from cwfs_ros.errors import ConfigError
+from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.layout import CORNERS, SIDES, VECTOR_TOPIC, corner_topic, image_topic
 from cwfs_ros.ros.common import (
     DIAGNOSTICS_QOS,
@@ -90,6 +90,7 @@ from cwfs_ros.runtime.visits import (
     VisitVector,
     checked_entry,
 )
+from cwfs_ros.runtime.workload import WorkloadMonitor
 from cwfs_ros.wfs.blur import MAX_SEEING_FWHM_ARCSEC
 from cwfs_ros.wfs.orientation import FLIPS
 from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
@@ -151,6 +152,9 @@ class WavefrontNode(ManagedNode):
         self.stats = {"images": 0, "pairs": 0, "corners_valid": 0, "corners_invalid": 0,
                       "visits_published": 0, "visits_incomplete": 0, "frame_pairs": 0}
         self.last_compute_ms: dict[str, float] = {}
+        # Per-corner job costs, the workers' cache counts and the visit-timeout promise.
+        self.workload = WorkloadMonitor()
+        self._rebalancing = False
         self.last_status: dict[str, str] = {}
         # (monotonic time, what was missing) of the last visit published incomplete: WARN on
         # /diagnostics for a minute, as a producer that stopped is not an input rejected.
@@ -414,7 +418,9 @@ class WavefrontNode(ManagedNode):
 
     def _warm_corner(self, corner: str, gen: int, t0: float, attempt: int) -> None:
         (f,) = self.pool.warm_up({corner: (self.fields[corner]["intra"],
-                                           self.fields[corner]["extra"])}, self.settings)
+                                           self.fields[corner]["extra"])}, self.settings,
+                                 frames=self.pipeline.warms_frames,
+                                 sensor_config=str(self._param("sensor_config")))
         f.add_done_callback(lambda f: self._warm_done(f, corner, gen, t0, attempt))
 
     def _warm_done(self, f: Future, corner: str, gen: int, t0: float, attempt: int) -> None:
@@ -442,10 +448,14 @@ class WavefrontNode(ManagedNode):
                 return
             self._warm[corner] = info
             done = len(self._warm) == len(self.corners)
+            self.workload.record_warm(int(info.get("pid", 0)), info.get("caches"))
         if not info.get("ok"):
             self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
         if done:
-            self.get_logger().info(f"workers warm after {time.monotonic() - t0:.2f} s")
+            tiles = sum(int(w.get("tiles", 0)) for w in self._warm.values())
+            self.get_logger().info(
+                f"workers warm after {time.monotonic() - t0:.2f} s"
+                + (f" ({tiles} field tiles of the half-chips built)" if tiles else ""))
 
     @property
     def ready(self) -> bool:
@@ -574,6 +584,7 @@ class WavefrontNode(ManagedNode):
             count = count and not replaced
             self.stats["corners_valid" if out.valid else "corners_invalid"] += 1
             self.last_compute_ms[c] = out.compute_ms
+            self.workload.record(c, out.compute_ms, out.worker_pid, out.caches)
             self.last_status[c] = out.status
         if not out.valid and count:
             self._reject(Rejection(out.reason or "invalid", f"{c}: {out.status}", c, "",
@@ -584,6 +595,48 @@ class WavefrontNode(ManagedNode):
         self.pub_corner[c].publish(msg)
         if self.assembler is not None and assemble:
             self._assemble(out)
+        self._maybe_rebalance()
+
+    # ------------------------------------------------------------------ workers
+    def _maybe_rebalance(self) -> None:
+        """Move corners between workers when their measured costs say a busier worker would
+        be relieved by a fifth or more (:meth:`WorkloadMonitor.proposal`). A moved corner is
+        warmed on its new worker first, and served there from the job after that."""
+        with self._lock:
+            pool = self.pool
+            if self._rebalancing or pool is None or not self.ready:
+                return
+            new = self.workload.proposal(pool.affinity, pool.n_workers)
+            if new is None:
+                return
+            self._rebalancing = True
+            gen, old = self._warm_generation, dict(pool.affinity)
+        moved = {c: i for c, i in new.items() if old[c] != i}
+        futures = [pool.warm_up({c: (self.fields[c]["intra"], self.fields[c]["extra"])},
+                                self.settings, frames=self.pipeline.warms_frames,
+                                sensor_config=str(self._param("sensor_config")), slot=i)[0]
+                   for c, i in moved.items()]
+        left = [len(futures)]
+
+        def done(_f: Future) -> None:
+            with self._lock:
+                left[0] -= 1
+                if left[0]:
+                    return
+                ok = all(not f.cancelled() and f.exception() is None and f.result().get("ok")
+                         for f in futures)
+                if ok and self.pool is pool and gen == self._warm_generation:
+                    pool.assign(new)
+                self._rebalancing = False
+            costs = self.workload.costs_s(new)
+            self.get_logger().info(
+                ("corners reassigned by measured cost (p90 " if ok else
+                 "corner reassignment abandoned (a warm-up failed; p90 ")
+                + ", ".join(f"{c} {costs.get(c, float('nan')):.2f} s" for c in sorted(new))
+                + f"): {old} -> {new}")
+
+        for f in futures:
+            f.add_done_callback(done)
 
     # ------------------------------------------------------------------ assembly
     def _remote_corner_callback(self, corner: str):
@@ -692,8 +745,10 @@ class WavefrontNode(ManagedNode):
             last = dict(self.last_status)
             incomplete = self.last_incomplete
             pending_mb = self.pairing.pending_bytes() / 1e6
+            promise, promise_s = self.workload.promise(
+                pool.affinity, pool.queued(), float(self._param("visit_timeout_s")))
         self.foreign = foreign_publishers(self, self._owned_topics())
-        level, state, message = self._health(warm, lifecycle, incomplete)
+        level, state, message = self._health(warm, lifecycle, incomplete, promise)
         values = [("state", state), ("lifecycle", lifecycle),
                   ("corners", " ".join(self.corners)),
                   ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
@@ -705,6 +760,7 @@ class WavefrontNode(ManagedNode):
         values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
                    for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
         values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
+        values += self._workload_values(pool, promise_s)
         values += [(f"status.{c}", v) for c, v in sorted(last.items())]
         values += [(f"warm_s.{c}", f"{w.get('total_s', 0.0):.2f}") for c, w in
                    sorted(warm.items())]
@@ -713,8 +769,25 @@ class WavefrontNode(ManagedNode):
         return diagnostic_status(name, level, message, values,
                                  hardware_id="cwfs_corner_sensors")
 
+    def _workload_values(self, pool: CornerPool, promise_s: float) -> list[tuple[str, str]]:
+        """The workers' assignment, queues, costs and caches, for /diagnostics."""
+        with self._lock:
+            costs = self.workload.costs_s(pool.affinity)
+            values = [("affinity", " ".join(f"{c}:{i}" for c, i in sorted(pool.affinity.items()))),
+                      ("visit_timeout_s", f"{float(self._param('visit_timeout_s')):g}"),
+                      ("visit_time_p90_s", f"{promise_s:.2f}" if promise_s == promise_s
+                       else "not yet measured")]
+            values += [(f"queued.worker{i}", str(n)) for i, n in sorted(pool.queued().items())]
+            values += [(f"cost_p90_s.{c}", f"{v:.2f}") for c, v in sorted(costs.items())]
+            values += self.workload.cache_values()
+            values += [(f"warm_tiles.{c}", f"{int(w.get('tiles', 0))} in "
+                        f"{float(w.get('tiles_s', 0.0)):.1f} s") for c, w in
+                       sorted(self._warm.items()) if w.get("tiles")]
+        return values
+
     def _health(self, warm: dict[str, dict], lifecycle: str,
-                incomplete: tuple[float, str] | None) -> tuple[bytes, str, str]:
+                incomplete: tuple[float, str] | None,
+                promise: Problem | None = None) -> tuple[bytes, str, str]:
         """(level, state, message) of /diagnostics: the worst condition first."""
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
@@ -733,6 +806,9 @@ class WavefrontNode(ManagedNode):
         elif self.foreign:
             level, state = WARN, "ready"
             message = f"ready; another publisher on a topic of this node: {self.foreign[0]}"
+        elif promise is not None:
+            level, state = WARN, "ready"
+            message = f"ready; {promise.status}"
         elif self.rejected.recent(10.0):
             level, state = WARN, "ready"
             message = f"ready; recently rejected input: {self.rejected.last_message}"

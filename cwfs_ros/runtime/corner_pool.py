@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -46,6 +46,7 @@ __all__ = [
     "run_frame_job",
     "synthetic_donut",
     "warm_corner",
+    "worker_cache_counts",
 ]
 
 
@@ -79,6 +80,7 @@ class CornerOutcome:
             a stamp pair gives the calibrated noise model's (:func:`stamp_uncertainty_nm`),
             frames the pairs' combination's.
         n_pairs: donut pairs combined (1 for a stamp pair; 0 when none was usable).
+        caches: the worker's geometry caches after the job (:func:`worker_cache_counts`).
     """
 
     corner: str
@@ -97,6 +99,28 @@ class CornerOutcome:
     noll: tuple[int, ...] = field(default=_NOLL)
     uncertainty_nm: np.ndarray | None = None
     n_pairs: int = 1
+    caches: dict[str, tuple[int, int, int, int]] = field(default_factory=dict)
+
+
+def worker_cache_counts() -> dict[str, tuple[int, int, int, int]]:
+    """(hits, builds, held, size) of this process's geometry caches since it started: the
+    field tiles (``map``, ``pupil``, ``design``: :func:`cwfs_ros.wfs.mapping.field_tile_stats`)
+    and ``pair_geometry`` (one per pair of star fields: stamps at the configured fields hit
+    it every visit; frames, whose stars move, build one per pair from the tiles)."""
+    from cwfs_ros.wfs.estimator import pair_geometry
+    from cwfs_ros.wfs.mapping import field_tile_stats
+
+    out = {k: (t.hits, t.builds, t.held, t.size) for k, t in field_tile_stats().items()}
+    info = pair_geometry.cache_info()
+    out["pair_geometry"] = (info.hits, info.misses, info.currsize, int(info.maxsize or 0))
+    return out
+
+
+def _with_caches(out: CornerOutcome) -> CornerOutcome:
+    try:
+        return replace(out, caches=worker_cache_counts())
+    except Exception:  # noqa: BLE001 - the counts are a report; the outcome matters
+        return out
 
 
 def _mid(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
@@ -123,6 +147,10 @@ def _shapes(job: CornerJob) -> str:
 
 def run_corner_job(job: CornerJob) -> CornerOutcome:
     """Estimate one corner (runs in a worker process; never raises)."""
+    return _with_caches(_estimate_corner(job))
+
+
+def _estimate_corner(job: CornerJob) -> CornerOutcome:
     from cwfs_ros.wfs.estimator import estimate_wavefront
 
     t0 = time.perf_counter()
@@ -213,7 +241,7 @@ def run_frame_job(job: Any) -> CornerOutcome:
     """Estimate one corner from its two frames (runs in a worker process; never raises)."""
     from cwfs_ros.frames.selection import run_corner_frame_job
 
-    return frame_outcome(run_corner_frame_job(job))
+    return _with_caches(frame_outcome(run_corner_frame_job(job)))
 
 
 def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.ndarray:
@@ -227,12 +255,14 @@ def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.n
 
 def warm_corner(corner: str, field_intra_deg: tuple[float, float],
                 field_extra_deg: tuple[float, float], settings: EstimatorSettings,
-                stamp_px: int = 0) -> dict:
+                stamp_px: int = 0, frames: bool = False, sensor_config: str = "") -> dict:
     """Build the estimator caches of one corner in this (worker) process.
 
     Estimates a synthetic annulus pair once: that builds the pair geometry (the slow part) and
     runs every code path of an estimate. The result of that estimate is irrelevant; errors are
-    reported, not raised.
+    reported, not raised. With ``frames``, also builds the field tiles of every star field
+    the corner's two half-chips (``sensor_config``) can hold (:func:`_warm_frames`), so that
+    the first frames visit costs what any other does.
     """
     from cwfs_ros.wfs.estimator import estimate_wavefront, load_algorithm, pair_geometry
     from cwfs_ros.wfs.instrument import load_instrument
@@ -254,12 +284,29 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
                                field_extra_deg=field_extra_deg, **settings.estimator_kwargs())
         except CwfsError:
             pass  # the synthetic pair may be rejected; the caches are built regardless
+        t2 = time.perf_counter()
+        tiles = _warm_frames(corner, inst, settings, algo, sensor_config) if frames else 0
         return {"corner": corner, "ok": True, "pid": os.getpid(),
-                "geometry_s": t1 - t0, "total_s": time.perf_counter() - t0, "error": ""}
+                "geometry_s": t1 - t0, "tiles": tiles, "tiles_s": time.perf_counter() - t2,
+                "total_s": time.perf_counter() - t0, "error": "",
+                "caches": worker_cache_counts()}
     except Exception as exc:  # noqa: BLE001
         return {"corner": corner, "ok": False, "pid": os.getpid(),
                 "geometry_s": 0.0, "total_s": time.perf_counter() - t0,
                 "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _warm_frames(corner: str, inst: Any, settings: EstimatorSettings, algo: Any,
+                 sensor_config: str) -> int:
+    """Build the field tiles of every star field of the corner's half-chips; the number
+    built (~1.2 s per map tile, about 9 per LSST corner)."""
+    from cwfs_ros.frames.field_position import corner_star_fields, load_half_chips
+    from cwfs_ros.wfs.estimator import warm_star_fields
+
+    halves = load_half_chips(sensor_config or None)[corner]
+    side_fields, mids = corner_star_fields(halves, inst, settings.band)
+    return warm_star_fields(inst, settings.band, inst.wavelength_nm(settings.band, None),
+                            algo, side_fields, mids)
 
 
 def _worker_init(owner_pid: int = 0) -> None:
@@ -370,6 +417,7 @@ class CornerPool:
         self._lock = threading.Lock()
         self._slots: list[ProcessPoolExecutor | None] = [None] * self.n_workers
         self.affinity = {c: i % self.n_workers for i, c in enumerate(self.corners)}
+        self._queued = [0] * self.n_workers  # jobs submitted to each slot and not finished
         self.restarts = 0
         self._closed = False
 
@@ -391,21 +439,42 @@ class CornerPool:
                 self.restarts += 1
         broken.shutdown(wait=False, cancel_futures=True)
 
-    def _submit_on(self, corner: str, fn: Callable, *args
+    def _submit_on(self, corner: str, fn: Callable, *args, slot: int | None = None
                    ) -> tuple[Future, ProcessPoolExecutor]:
-        """``fn(*args)`` on the corner's worker: its future, and the executor that runs it
-        (the one to restart if it breaks: by then the slot may hold a newer, healthy one)."""
-        i = self.affinity[corner]
+        """``fn(*args)`` on the corner's worker (or on ``slot``): its future, and the executor
+        that runs it (the one to restart if it breaks: by then the slot may hold a newer,
+        healthy one)."""
+        i = self.affinity[corner] if slot is None else int(slot)
         ex = self._slot(i)
         try:
-            return ex.submit(fn, *args), ex
+            f = ex.submit(fn, *args)
         except BrokenProcessPool:
             self._restart(i, ex)
             ex = self._slot(i)
-            return ex.submit(fn, *args), ex
+            f = ex.submit(fn, *args)
+        with self._lock:
+            self._queued[i] += 1
+        f.add_done_callback(lambda _f: self._finished(i))
+        return f, ex
 
-    def _submit(self, corner: str, fn: Callable, *args) -> Future:
-        return self._submit_on(corner, fn, *args)[0]
+    def _finished(self, i: int) -> None:
+        with self._lock:
+            self._queued[i] = max(0, self._queued[i] - 1)
+
+    def queued(self) -> dict[int, int]:
+        """Jobs (estimates and warm-ups) submitted to each worker and not yet finished."""
+        with self._lock:
+            return dict(enumerate(self._queued))
+
+    def assign(self, affinity: dict[str, int]) -> None:
+        """Serve each corner from the given worker from the next job on (every served corner
+        must be given a worker of this pool)."""
+        if set(affinity) != set(self.corners) or not all(
+                0 <= int(i) < self.n_workers for i in affinity.values()):
+            raise ConfigError(f"an assignment of {sorted(self.corners)} to workers "
+                              f"0..{self.n_workers - 1} was expected, got {affinity}")
+        with self._lock:
+            self.affinity = {c: int(i) for c, i in affinity.items()}
 
     def submit(self, job: CornerJob) -> Future:
         """Queue a job on its corner's worker. The future's result is a CornerOutcome.
@@ -454,12 +523,16 @@ class CornerPool:
         return out
 
     def warm_up(self, fields: dict[str, tuple[tuple[float, float], tuple[float, float]]],
-                settings: EstimatorSettings, stamp_px: int = 0) -> list[Future]:
-        """Start building each corner's caches in its worker; futures of :func:`warm_corner`.
+                settings: EstimatorSettings, stamp_px: int = 0, frames: bool = False,
+                sensor_config: str = "", slot: int | None = None) -> list[Future]:
+        """Start building each corner's caches in its worker (or in worker ``slot``, where
+        it is about to move); futures of :func:`warm_corner`.
 
-        ``fields`` maps corner -> (field_intra_deg, field_extra_deg).
+        ``fields`` maps corner -> (field_intra_deg, field_extra_deg); ``frames`` also builds
+        the field tiles of the corner's half-chips (``sensor_config``).
         """
-        return [self._submit(c, warm_corner, c, fi, fe, settings, stamp_px)
+        return [self._submit_on(c, warm_corner, c, fi, fe, settings, stamp_px, frames,
+                                sensor_config, slot=slot)[0]
                 for c, (fi, fe) in fields.items() if c in self.affinity]
 
     def shutdown(self, wait: bool = False) -> None:

@@ -192,12 +192,21 @@ class WavefrontPipeline:
         return Orientation(int(self._get(f"sensors.{corner}.{side}.rot90")),
                            str(self._get(f"sensors.{corner}.{side}.flip")))
 
+    @property
+    def warms_frames(self) -> bool:
+        """Whether the workers' warm-up builds the half-chips' field tiles: with
+        ``input_mode: frames`` (a camera that sends frames), so that the first frames visit
+        costs what any other does; stamps and ``auto`` warm the stamp path only (the tiles
+        are then built as frames need them, ~1.2 s each on the first visits)."""
+        return str(self._get("input_mode")) == "frames"
+
     def _tolerance_ns(self) -> int:
         return int(round(float(self._get("pairing_tolerance_s")) * 1e9))
 
     def apply(self, names: set[str]) -> str:
         """Take changed parameters ``names`` (their new values through ``get``). Returns
-        ``"rewarm"`` when the workers' caches no longer fit the settings, ``"seeing"`` when
+        ``"rewarm"`` when the workers' caches no longer fit the settings (or frames now need
+        their tiles), ``"seeing"`` when
         only the seeing changed (the caches stay valid: the blur reference is cached per
         seeing), ``""`` otherwise."""
         if "pairing_tolerance_s" in names:
@@ -212,7 +221,7 @@ class WavefrontPipeline:
             if any(n.startswith(f"sensors.{c}.{s}.") for n in names):
                 self.orientations[(c, s)] = self._orientation(c, s)
         if not names & set(SETTINGS_PARAMS):
-            return ""
+            return "rewarm" if "input_mode" in names and self.warms_frames else ""
         self.settings = EstimatorSettings.from_params(self._get)
         return "rewarm" if names & (set(SETTINGS_PARAMS) - {"seeing_fwhm_arcsec"}) else "seeing"
 

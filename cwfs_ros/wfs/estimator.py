@@ -31,6 +31,7 @@ exchanged (off axis, from the vignetted footprints the geometry predicts for eac
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from functools import cached_property, lru_cache, partial
 from typing import Any
@@ -61,12 +62,14 @@ from cwfs_ros.wfs.mapping import (
     nominal_mapping,
     pupil_transmission,
     reset_field_tiles,
+    tile_of,
+    warm_field_tiles,
 )
 from cwfs_ros.wfs.tie import SOLVERS, IterativeFFT, LeastSquares, SeriesExpansion
 from cwfs_ros.wfs.zernike import ZernikeBasis, gram_matrix, zernike_basis
 
 __all__ = ["estimate_wavefront", "WavefrontResult", "AlgorithmConfig", "EstimateConfig",
-           "load_algorithm", "load_checks", "PairGeometry", "pair_geometry"]
+           "load_algorithm", "load_checks", "PairGeometry", "pair_geometry", "warm_star_fields"]
 
 NOLL_REPORTED = np.asarray(NOLL)  # Z4..Z22, the published product
 
@@ -678,6 +681,27 @@ class WavefrontResult:
             "wavelength_nm": self.wavelength_nm,
             "wall_time_s": round(self.wall_time_s, 6),
         }
+
+
+def warm_star_fields(inst: Instrument, band: str, wavelength_nm: float, algo: AlgorithmConfig,
+                     side_fields: dict[str, Sequence[tuple[float, float]]],
+                     mid_fields: Sequence[tuple[float, float]]) -> int:
+    """Build what :func:`pair_geometry` reads from the field tiles for stars anywhere among
+    ``side_fields`` (deg, per side) and pair mid-points among ``mid_fields``: the map and
+    pupil tiles of each side and the design tiles, on the pupil grid pair_geometry uses.
+    From then on those tiles serve every star field in them (:func:`.mapping.warm_field_tiles`).
+    Returns the number of tiles built."""
+    defocus_mm = inst.defocal_offset_mm
+    spacing, extent, n = _grid_side(inst.donut_radius_px(defocus_mm), algo)
+    _, x, y, _ = _pupil_grid(n, spacing, extent, inst.obscuration, algo.jmax)
+    side_tiles = {side: [tile_of(f, algo.map_tile_deg) for f in fields]
+                  for side, fields in side_fields.items()} if algo.map_tile_deg > 0 else {}
+    mid_tiles = ([tile_of(f, algo.design_tile_deg) for f in mid_fields]
+                 if algo.design_tile_deg > 0 else [])
+    return warm_field_tiles(inst, x, y, side_tiles=side_tiles, mid_tiles=mid_tiles,
+                            defocus_mm=defocus_mm, band=band, wavelength_nm=wavelength_nm,
+                            tile_deg=algo.map_tile_deg, design_tile_deg=algo.design_tile_deg,
+                            jmax=algo.jmax)
 
 
 def reset_caches() -> None:

@@ -42,7 +42,7 @@ batoid's OPD convention; ``test_estimator`` pins it with ray-traced perturbation
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -57,7 +57,9 @@ from cwfs_ros.wfs.instrument import Instrument
 from cwfs_ros.wfs.zernike import zernike_basis
 
 __all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "design_zernikes_tiled",
-           "Poly10Tables", "poly10_tables", "defocused_telescope"]
+           "Poly10Tables", "poly10_tables", "defocused_telescope", "TileCacheStats",
+           "field_tile_stats", "size_field_tile_caches", "warm_field_tiles", "tile_of",
+           "tile_centre"]
 
 
 # Radial order of the polynomial fitted to ray hits.  The paper uses 10th order (§3.3); with
@@ -416,7 +418,6 @@ _MAP_TILE_NODES = 5
 _MAP_TILE_MAX_RESID_PX = 1e-4
 _map_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
 _MAP_TILE_CACHE: dict[tuple, tuple | None] = {}
-_MAP_TILE_CACHE_SIZE = 64
 # Number of mapping tiles fitted (tests read it to check the cache is reused).
 map_tile_builds = 0
 
@@ -468,13 +469,70 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     return (centre, variation), always, sweep, edges, max(rms)
 
 
-def _cached_tile(cache: dict[tuple, Any], size: int, key: tuple,
+# -- the field-tile caches: sizes, warming and counters --------------------------------------
+#
+# Three caches hold field tiles: "map" and "pupil" (one tile per side and field tile) and
+# "design" (one per field tile of the pairs' mid-points).  A worker serving frames needs every
+# tile its half-chips cover (about 9 map tiles per LSST corner at 0.125 deg), so the caches
+# are sized from the sensor geometry by :func:`size_field_tile_caches`; 64 is the floor.
+_TILE_KINDS = ("map", "pupil", "design")
+_TILE_CACHE_SIZE = dict.fromkeys(_TILE_KINDS, 64)
+# Per kind: [served from the cache, built, evicted, traced directly (a tile's first fields)].
+_TILE_COUNTS = {k: [0, 0, 0, 0] for k in _TILE_KINDS}
+# Tiles warmed at start serve every field in them, from the first (see _tile_wanted).
+_WARMED_TILES: set[tuple] = set()
+_warming = False
+
+
+@dataclass(frozen=True)
+class TileCacheStats:
+    """One field-tile cache of this process: held/size tiles and its request counts."""
+
+    kind: str
+    held: int
+    size: int
+    hits: int
+    builds: int
+    evictions: int
+    direct: int
+
+    @property
+    def hit_rate(self) -> float:
+        """Share of tile requests served from the cache (NaN before any request)."""
+        n = self.hits + self.builds
+        return self.hits / n if n else float("nan")
+
+
+def field_tile_stats() -> dict[str, TileCacheStats]:
+    """The field-tile caches of this process (``map``, ``pupil``, ``design``)."""
+    held = {"map": len(_MAP_TILE_CACHE), "pupil": len(_PUPIL_TILE_CACHE),
+            "design": len(_DESIGN_TILE_CACHE)}
+    return {k: TileCacheStats(k, held[k], _TILE_CACHE_SIZE[k], *_TILE_COUNTS[k])
+            for k in _TILE_KINDS}
+
+
+def size_field_tile_caches(n_map: int, n_pupil: int, n_design: int) -> None:
+    """Hold at least this many tiles of each kind (never fewer than 64, and never fewer than
+    asked before): a worker's caches must keep every tile of every half-chip it serves, or
+    its corners evict each other's."""
+    for kind, n in zip(_TILE_KINDS, (n_map, n_pupil, n_design), strict=True):
+        _TILE_CACHE_SIZE[kind] = max(_TILE_CACHE_SIZE[kind], 64, int(n))
+
+
+def _cached_tile(cache: dict[tuple, Any], kind: str, key: tuple,
                  build: Callable[[], Any]) -> Any:
-    """``cache[key]``, built on first use; when ``size`` tiles are held the oldest goes."""
-    if key not in cache:
-        if len(cache) >= size:
-            cache.pop(next(iter(cache)))
-        cache[key] = build()
+    """``cache[key]``, built on first use; when the kind's size is held the oldest goes
+    (never a warmed tile while an unwarmed one can go)."""
+    counts = _TILE_COUNTS[kind]
+    if key in cache:
+        counts[0] += 1
+        return cache[key]
+    if len(cache) >= _TILE_CACHE_SIZE[kind]:
+        gone = next((k for k in cache if k not in _WARMED_TILES), next(iter(cache)))
+        cache.pop(gone)
+        counts[2] += 1
+    counts[1] += 1
+    cache[key] = build()
     return cache[key]
 
 
@@ -487,9 +545,9 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
     tile = _tile_of((fx, fy), tile_deg)
     key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile, float(tile_deg),
            op)
-    if not _tile_wanted(_map_tile_requests, key, (fx, fy)):
+    if not _tile_wanted(_map_tile_requests, key, (fx, fy), "map"):
         return None
-    entry = _cached_tile(_MAP_TILE_CACHE, _MAP_TILE_CACHE_SIZE, key, lambda: _map_tile(
+    entry = _cached_tile(_MAP_TILE_CACHE, "map", key, lambda: _map_tile(
         inst, side, defocus_mm, x, y, band, wavelength_nm, tile, tile_deg, op, annulus))
     if entry is None:
         return None
@@ -957,7 +1015,6 @@ def _pupil_apertures_from(obscuration: float, aps: np.ndarray,
 
 _pupil_tile_requests: dict[tuple, set[tuple[float, float]]] = {}
 _PUPIL_TILE_CACHE: dict[tuple, tuple | None] = {}
-_PUPIL_TILE_CACHE_SIZE = 64
 # Largest difference [m] between a node's traced lattice positions and the tile's field
 # polynomial there; the tile is not used beyond it (the fit is ~1e-12 m at the corners).
 _PUPIL_TILE_MAX_RESID_M = 1e-9
@@ -995,8 +1052,8 @@ def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
         tile = _tile_of(field_deg, tile_deg)
         key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile,
                float(tile_deg))
-        if _tile_wanted(_pupil_tile_requests, key, field_deg):
-            entry = _cached_tile(_PUPIL_TILE_CACHE, _PUPIL_TILE_CACHE_SIZE, key,
+        if _tile_wanted(_pupil_tile_requests, key, field_deg, "pupil"):
+            entry = _cached_tile(_PUPIL_TILE_CACHE, "pupil", key,
                                  lambda: _pupil_tile(inst, band, wavelength_nm, side,
                                                      defocus_mm, tile, tile_deg))
             if entry is not None:
@@ -1108,14 +1165,68 @@ def reset_field_tiles() -> None:
     _map_tile_requests.clear()
     _MAP_TILE_CACHE.clear()
     _design_tile_requests.clear()
-    _design_tile.cache_clear()
+    _DESIGN_TILE_CACHE.clear()
     _pupil_tile_requests.clear()
     _PUPIL_TILE_CACHE.clear()
+    _WARMED_TILES.clear()
+    for counts in _TILE_COUNTS.values():
+        counts[:] = [0, 0, 0, 0]
 
 
 def _tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
     """Index of the ``tile_deg`` field tile holding ``field_deg``."""
     return (int(np.floor(field_deg[0] / tile_deg)), int(np.floor(field_deg[1] / tile_deg)))
+
+
+def tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
+    """Index (i, j) of the ``tile_deg`` field tile holding ``field_deg`` [deg]."""
+    return _tile_of(field_deg, tile_deg)
+
+
+def tile_centre(tile: tuple[int, int], tile_deg: float) -> tuple[float, float]:
+    """Field [deg] at the centre of field tile ``tile``."""
+    return ((tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg)
+
+
+def warm_field_tiles(inst: Instrument, x: np.ndarray, y: np.ndarray, *,
+                     side_tiles: dict[str, Iterable[tuple[int, int]]],
+                     mid_tiles: Iterable[tuple[int, int]], defocus_mm: float, band: str,
+                     wavelength_nm: float, tile_deg: float, design_tile_deg: float,
+                     jmax: int) -> int:
+    """Build the map and pupil tiles (``tile_deg``) of each side's field tiles, for the
+    pupil points x, y, and the design tiles (``design_tile_deg``) of ``mid_tiles``, and let
+    them serve every field in them from now on (without the first-fields rule).
+
+    The caches grow to hold them all, with 16 tiles of each kind to spare for fields beyond
+    (:func:`size_field_tile_caches`). Returns the number of tiles built (0 when every one was
+    already held, or the instrument is not ray-traced).
+    """
+    global _warming
+    side_tiles = {side: sorted(set(tiles)) for side, tiles in side_tiles.items()}
+    mid_tiles = sorted(set(mid_tiles)) if design_tile_deg > 0 else []
+    if inst.mapping != "batoid" or tile_deg <= 0:
+        return 0
+    n_side = sum(len(t) for t in side_tiles.values())
+    size_field_tile_caches(len(_MAP_TILE_CACHE) + n_side + 16,
+                           len(_PUPIL_TILE_CACHE) + n_side + 16,
+                           len(_DESIGN_TILE_CACHE) + len(mid_tiles) + 16)
+    before = sum(c[1] for c in _TILE_COUNTS.values())
+    _warming = True
+    try:
+        for side, tiles in side_tiles.items():
+            for tile in tiles:
+                centre = tile_centre(tile, tile_deg)
+                nominal_mapping(inst, side, x, y, defocus_mm=defocus_mm, band=band,
+                                wavelength_nm=wavelength_nm, field_deg=centre,
+                                tile_deg=tile_deg)
+                _pupil_apertures(inst, band, wavelength_nm, centre, side, float(defocus_mm),
+                                 float(tile_deg))
+        for tile in mid_tiles:
+            design_zernikes_tiled(inst, band, wavelength_nm,
+                                  tile_centre(tile, design_tile_deg), jmax, design_tile_deg)
+    finally:
+        _warming = False
+    return sum(c[1] for c in _TILE_COUNTS.values()) - before
 
 
 def _tile_local(field_deg: tuple[float, float], tile: tuple[int, int],
@@ -1138,13 +1249,23 @@ def _tile_nodes(tile: tuple[int, int], tile_deg: float, n: int
 
 
 def _tile_wanted(requests: dict[tuple, set[tuple[float, float]]], key: tuple,
-                 field: tuple[float, float]) -> bool:
+                 field: tuple[float, float], kind: str) -> bool:
     """Whether a tile should serve ``field``: not for the tile's first
-    ``_DESIGN_TILE_AFTER - 1`` distinct fields, which keep the direct value."""
+    ``_DESIGN_TILE_AFTER - 1`` distinct fields, which keep the direct value, unless the tile
+    was warmed (:func:`warm_field_tiles`): then for every field, so that an estimate does not
+    depend on what the process estimated before."""
+    if key in _WARMED_TILES:
+        return True
+    if _warming:
+        _WARMED_TILES.add(key)
+        return True
     seen = requests.setdefault(key, set())
     if field not in seen and len(seen) < _DESIGN_TILE_AFTER - 1:
         seen.add(field)
-    return field not in seen
+    wanted = field not in seen
+    if not wanted:
+        _TILE_COUNTS[kind][3] += 1
+    return wanted
 
 
 def _tile_monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -1152,7 +1273,9 @@ def _tile_monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
                      for a in range(d + 1)], axis=-1)
 
 
-@lru_cache(maxsize=64)
+_DESIGN_TILE_CACHE: dict[tuple, np.ndarray | None] = {}
+
+
 def _design_tile(inst: Instrument, band: str, wavelength_nm: float, tile: tuple[int, int],
                  tile_deg: float, jmax: int) -> np.ndarray | None:
     """Polynomial coefficients (n_mono, jmax) of one tile's design Zernikes, or None."""
@@ -1178,9 +1301,9 @@ def design_zernikes_tiled(inst: Instrument, band: str, wavelength_nm: float,
     fx, fy = float(field_deg[0]), float(field_deg[1])
     tile = _tile_of((fx, fy), tile_deg)
     key = (inst, band, float(wavelength_nm), tile, float(tile_deg), int(jmax))
-    if not _tile_wanted(_design_tile_requests, key, (fx, fy)):
+    if not _tile_wanted(_design_tile_requests, key, (fx, fy), "design"):
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
-    coef = _design_tile(*key)
+    coef = _cached_tile(_DESIGN_TILE_CACHE, "design", key, lambda: _design_tile(*key))
     if coef is None:
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
     out = _tile_monomials(*_tile_local((fx, fy), tile, tile_deg)) @ coef
