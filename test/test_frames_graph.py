@@ -1,7 +1,8 @@
 """Frames through the graph: camera_sim_node publishes half-chip frames with several stars
 (plus a blended pair and a too-faint star); wavefront_node detects, pairs and combines the
-donuts (input_mode auto, decided by size) and publishes the corner with n_pairs and a
-per-term uncertainty. Real DDS, one process, the test's own domain."""
+donuts and publishes the corner with n_pairs and a per-term uncertainty. With
+``input_mode: frames`` the warm-up builds the field tiles of the corner's half-chips, so the
+first visit builds none. Real DDS, one process, the test's own domain."""
 
 from __future__ import annotations
 
@@ -23,6 +24,10 @@ from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
 from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 
 
+def _diag(node) -> dict[str, str]:
+    return {kv.key: kv.value for kv in node.diagnostics().values}
+
+
 def test_frames_are_selected_paired_and_combined(ros_context):
     P = Parameter
     cam = CameraSimNode(context=ros_context, parameter_overrides=[
@@ -32,7 +37,8 @@ def test_frames_are_selected_paired_and_combined(ros_context):
         P("frame_flux_max", value=3e5), P("render_seed", value=3)])
     wf = WavefrontNode(context=ros_context, parameter_overrides=[
         P("corners", value=["R00"]), P("workers", value=1), P("assemble", value=False),
-        P("solver", value="lsq"), P("visit_timeout_s", value=60.0)])
+        P("solver", value="lsq"), P("visit_timeout_s", value=60.0),
+        P("input_mode", value="frames")])
     tester = rclpy.create_node("frames_tester", context=ros_context)
     got: list[CornerWavefront] = []
     truth: list[SimTruth] = []
@@ -46,7 +52,9 @@ def test_frames_are_selected_paired_and_combined(ros_context):
     th = spin_thread(ex)
     th.start()
     try:
-        wait_for(lambda: wf.ready, 60, "warm-up")
+        wait_for(lambda: wf.ready, 180, "warm-up")
+        warm = _diag(wf)
+        assert int(warm["warm_tiles.R00"].split()[0]) > 0, warm
         assert trigger.wait_for_service(timeout_sec=10)
         wait_for(lambda: cam.pubs[("R00", "intra")].get_subscription_count() > 0, 10,
                  "discovery")
@@ -68,6 +76,12 @@ def test_frames_are_selected_paired_and_combined(ros_context):
         print(f"\n{m.status}; n_pairs {m.n_pairs}; error {np.sqrt(np.mean(err ** 2)):.1f} nm "
               f"rms; uncertainty median {np.median(unc):.1f} nm")
         assert np.sqrt(np.mean(err ** 2)) < 50.0, err
+        # The first visit after start read every tile it needed from the warm-up.
+        after = _diag(wf)
+        assert "(0 builds;" not in after["cache.pair_geometry"]  # the pairs were new fields
+        for kind in ("map", "design"):
+            assert " 0 builds;" in after[f"cache.{kind}"], after[f"cache.{kind}"]
+            assert not after[f"cache.{kind}"].startswith("hit -"), after[f"cache.{kind}"]
     finally:
         ex.shutdown(timeout_sec=2.0)
         th.join(5)

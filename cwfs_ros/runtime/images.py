@@ -111,12 +111,7 @@ def decode_checked(data: bytes | bytearray | memoryview | np.ndarray | list[int]
     """
     out = decode_image(data, height=height, width=width, encoding=encoding, step=step,
                        is_bigendian=is_bigendian)
-    swapped = None
-    if np.dtype(ENCODINGS[str(encoding)]).itemsize > 1:
-        with np.errstate(all="ignore"):  # the wrong order may hold NaN, Inf, subnormals
-            swapped = decode_image(data, height=height, width=width, encoding=encoding,
-                                   step=step, is_bigendian=not is_bigendian)
-    inspect_pixels(out, str(encoding), swapped=swapped)
+    inspect_pixels(out, str(encoding))
     return out
 
 
@@ -139,14 +134,15 @@ WRAP_MIN_PIXELS = 3
 
 
 def inspect_pixels(image: np.ndarray, encoding: str, *,
-                   swapped: np.ndarray | None = None) -> None:
+                   swapped: np.ndarray | None = None, byte_order: bool = True) -> None:
     """Refuse pixels that a decoder alone can tell are wrong; raise :class:`ImageDecodeError`.
 
     Args:
         image: the decoded image (float64) as the message declares it.
         encoding: its encoding (a key of :data:`ENCODINGS`).
         swapped: the same bytes decoded with the other byte order (multi-byte encodings);
-            None skips the byte-order test.
+            None: made here from ``image`` (only where the test reads it).
+        byte_order: False skips the byte-order test.
 
     Reasons:
         ``byte_order``: integers: the image as declared is :data:`BYTE_ORDER_RATIO` times
@@ -165,8 +161,10 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
-    if swapped is not None:
-        _check_byte_order(image, swapped, base)
+    if byte_order and base.itemsize > 1:
+        given = _row_blocks(image)
+        other = _row_blocks(swapped) if swapped is not None else _other_order(given, base)
+        _check_byte_order(given, other, base)
     if base.kind in "ui":
         info = np.iinfo(base)
         n_top = int(np.count_nonzero(image >= info.max))
@@ -190,11 +188,39 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
             "and their squares underflow or overflow; send counts, electrons or photons")
 
 
+# Byte order is judged on blocks of BLOCK_ROWS whole rows spread over the image, about
+# ORDER_PIXELS pixels in all (a stamp: all of it). A wrong order changes every pixel, so any
+# blocks tell it; reading all of a frame's millions of pixels twice cost the node ~100 ms an
+# image.
+BLOCK_ROWS = 4
+ORDER_PIXELS = 1 << 18
+
+
+def _row_blocks(a: np.ndarray) -> np.ndarray:
+    """``(n, rows, cols)`` blocks of whole rows evenly spread over ``a`` (all of it, as one
+    block, when it is small)."""
+    h, w = a.shape
+    if a.size <= ORDER_PIXELS or h < 2 * BLOCK_ROWS:
+        return a[None]
+    n = int(np.clip(-(-ORDER_PIXELS // (BLOCK_ROWS * w)), 1, h // BLOCK_ROWS))
+    starts = np.linspace(0, h - BLOCK_ROWS, n).astype(int)
+    return np.stack([a[s:s + BLOCK_ROWS] for s in starts])
+
+
+def _other_order(a: np.ndarray, base: np.dtype) -> np.ndarray:
+    """``a`` (float64 values of a ``base`` image) as its bytes read in the other byte order:
+    the values convert back to ``base`` exactly, and swapping their bytes is what a decoder
+    with the other ``is_bigendian`` would read."""
+    with np.errstate(all="ignore"):  # the wrong order may hold NaN, Inf, subnormals
+        return a.astype(base).byteswap().astype(np.float64)
+
+
 def _roughness(a: np.ndarray) -> float:
-    """Mean absolute difference of horizontal and vertical neighbours (inf if not finite)."""
+    """Mean absolute difference of horizontal and vertical neighbours (inf if not finite);
+    ``a`` is an image or a stack of row blocks (neighbours within a block)."""
     total, n = 0.0, 0
     with np.errstate(all="ignore"):
-        for k in (0, 1):
+        for k in (a.ndim - 2, a.ndim - 1):
             if a.shape[k] > 1:
                 d = np.abs(np.diff(a, axis=k))
                 total += float(np.sum(d))
@@ -202,8 +228,22 @@ def _roughness(a: np.ndarray) -> float:
     return total / n if n else 0.0
 
 
+# The float byte-order statistics (quartiles, subnormal share) are read from at most this
+# many pixels, evenly strided over the whole image: a frame's 2-8 million pixels would cost
+# ~100 ms a frame in the node's image callback for the same answer (a wrong order spreads
+# over tens of decades, a genuine image over a few).
+FLOAT_SAMPLE = 1 << 16
+
+
+def _sample(a: np.ndarray) -> np.ndarray:
+    """Every k-th pixel of ``a`` (k such that at most :data:`FLOAT_SAMPLE` remain)."""
+    flat = a.reshape(-1)
+    return flat[::max(1, -(-flat.size // FLOAT_SAMPLE))]
+
+
 def _log_spread(a: np.ndarray) -> float:
     """Interquartile range of log10|x| over the finite non-zero pixels (decades)."""
+    a = _sample(a)
     x = np.abs(a[np.isfinite(a)])
     x = x[x > 0]
     if x.size < 4:
@@ -213,6 +253,7 @@ def _log_spread(a: np.ndarray) -> float:
 
 
 def _subnormal_fraction(a: np.ndarray, tiny: float) -> float:
+    a = _sample(a)
     x = np.abs(a[np.isfinite(a)])
     return float(np.count_nonzero((x > 0) & (x < tiny))) / max(x.size, 1)
 
