@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -114,3 +115,31 @@ def test_pool_affinity_and_recovery_from_a_dead_worker():
         pool.shutdown()
     with pytest.raises(RuntimeError):
         pool.submit(job(np.ones((1, 1)), np.ones((1, 1)), "R00"))
+
+
+def test_corners_move_to_the_worker_they_are_assigned_and_queues_are_counted():
+    """assign() serves a corner from another worker from the next job on; the queue counts
+    cover what each worker still has to run."""
+    pool = CornerPool(["R00", "R04"], n_workers=2)
+    try:
+        assert pool.affinity == {"R00": 0, "R04": 1}
+        pid = {c: pool._submit_on(c, os.getpid)[0].result(timeout=60) for c in ("R00", "R04")}
+        assert pid["R00"] != pid["R04"]
+        pool.assign({"R00": 1, "R04": 0})
+        moved = {c: pool._submit_on(c, os.getpid)[0].result(timeout=60) for c in ("R00", "R04")}
+        assert moved == {"R00": pid["R04"], "R04": pid["R00"]}
+        # Two sleeps queued on worker 0 (R04 now): counted until they finish.
+        futs = [pool._submit_on("R04", time.sleep, 0.5)[0] for _ in range(2)]
+        assert pool.queued()[0] == 2 and pool.queued()[1] == 0
+        for f in futs:
+            f.result(timeout=30)
+        end = time.monotonic() + 10  # the count drops in the future's done callback
+        while pool.queued() != {0: 0, 1: 0} and time.monotonic() < end:
+            time.sleep(0.01)
+        assert pool.queued() == {0: 0, 1: 0}
+        with pytest.raises(ConfigError, match="assignment"):
+            pool.assign({"R00": 2, "R04": 0})
+        with pytest.raises(ConfigError, match="assignment"):
+            pool.assign({"R00": 0})
+    finally:
+        pool.shutdown()

@@ -238,8 +238,11 @@ def _add_demo(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--visits", type=_positive_int, default=8,
                    help="visits to run (default: %(default)s)")
     p.add_argument("--perturbation", choices=("rigid", "bending", "mixed"), default="rigid",
-                   help="what is perturbed at the start: the M2 and camera hexapods, the "
-                        "mirrors' bending modes, or both (default: %(default)s)")
+                   help="what is perturbed at the start, drawn within the strokes of "
+                        "cwfs_ros.sim.perturbation.stroke_perturbation: the M2 and camera "
+                        "hexapods (decentres up to 1 mm, tilts up to 30 arcsec, pistons up to "
+                        "25 um), the mirrors' bending modes (up to 0.3 x range), or both; then "
+                        "scaled to --wavefront-error (default: %(default)s)")
     p.add_argument("--wavefront-error", type=_finite_float, default=600.0, metavar="NM",
                    help="initial wavefront error, mean over corners of sqrt(sum Z4..Z22^2) "
                         "(default: %(default)s)")
@@ -282,11 +285,11 @@ def _run_demo(args: argparse.Namespace) -> int:
 
     from cwfs_ros.cli.demo import LoopConfig, LoopError, run_closed_loop, write_report
     from cwfs_ros.ros.launch import sim_params_file
-    from cwfs_ros.sim.perturbation import random_perturbation
+    from cwfs_ros.sim.perturbation import stroke_perturbation
 
     _check_demo_args(args)
     args.out.mkdir(parents=True, exist_ok=True)
-    dof = random_perturbation(args.perturbation, args.seed, args.wavefront_error)
+    dof = stroke_perturbation(args.perturbation, args.seed, args.wavefront_error)
     print(f"cwfs-ros demo: {args.perturbation} perturbation (seed {args.seed}) of "
           f"{args.wavefront_error:g} nm wavefront error, {args.visits} visits, "
           f"{args.photons:g} photons per donut"

@@ -227,7 +227,6 @@ class _Pipeline:
 
         # Every corner, whatever ``corners`` says: a bag may come from several processes.
         self.wf = WavefrontPipeline(wf.__getitem__, _CORNERS, assemble=True)
-        self.wf_params = wf
         self.settings = self.wf.settings
         self.fields = self.wf.fields
         from cwfs_ros.ofc.params import controller_from_params
@@ -254,8 +253,7 @@ class _Pipeline:
 
         for c in _CORNERS:
             warm_corner(c, self.fields[c]["intra"], self.fields[c]["extra"], self.settings,
-                        frames=self.wf.warms_frames,
-                        sensor_config=str(self.wf_params["sensor_config"] or ""))
+                        frames=self.wf.frame_warm())
 
     # -- the wavefront_node path (WavefrontNode._on_image and what follows it)
     def image(self, msg: Any, corner: str, side: str, now_s: float, clock_ns: int) -> None:

@@ -419,8 +419,7 @@ class WavefrontNode(ManagedNode):
     def _warm_corner(self, corner: str, gen: int, t0: float, attempt: int) -> None:
         (f,) = self.pool.warm_up({corner: (self.fields[corner]["intra"],
                                            self.fields[corner]["extra"])}, self.settings,
-                                 frames=self.pipeline.warms_frames,
-                                 sensor_config=str(self._param("sensor_config")))
+                                 frames=self.pipeline.frame_warm())
         f.add_done_callback(lambda f: self._warm_done(f, corner, gen, t0, attempt))
 
     def _warm_done(self, f: Future, corner: str, gen: int, t0: float, attempt: int) -> None:
@@ -613,8 +612,7 @@ class WavefrontNode(ManagedNode):
             gen, old = self._warm_generation, dict(pool.affinity)
         moved = {c: i for c, i in new.items() if old[c] != i}
         futures = [pool.warm_up({c: (self.fields[c]["intra"], self.fields[c]["extra"])},
-                                self.settings, frames=self.pipeline.warms_frames,
-                                sensor_config=str(self._param("sensor_config")), slot=i)[0]
+                                self.settings, frames=self.pipeline.frame_warm(), slot=i)[0]
                    for c, i in moved.items()]
         left = [len(futures)]
 

@@ -40,6 +40,7 @@ __all__ = [
     "CornerJob",
     "CornerOutcome",
     "CornerPool",
+    "FrameFiles",
     "invalid_outcome",
     "frame_outcome",
     "run_corner_job",
@@ -253,16 +254,25 @@ def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.n
     return img + 1.0
 
 
+@dataclass(frozen=True)
+class FrameFiles:
+    """The files a frames job reads: wavefront_node's ``sensor_config`` and
+    ``selection_config`` ("" = the bundled ones)."""
+
+    sensor_config: str = ""
+    selection_config: str = ""
+
+
 def warm_corner(corner: str, field_intra_deg: tuple[float, float],
                 field_extra_deg: tuple[float, float], settings: EstimatorSettings,
-                stamp_px: int = 0, frames: bool = False, sensor_config: str = "") -> dict:
+                stamp_px: int = 0, frames: FrameFiles | None = None) -> dict:
     """Build the estimator caches of one corner in this (worker) process.
 
     Estimates a synthetic annulus pair once: that builds the pair geometry (the slow part) and
     runs every code path of an estimate. The result of that estimate is irrelevant; errors are
     reported, not raised. With ``frames``, also builds the field tiles of every star field
-    the corner's two half-chips (``sensor_config``) can hold (:func:`_warm_frames`), so that
-    the first frames visit costs what any other does.
+    the corner's two half-chips can hold and reads the selection file
+    (:func:`_warm_frames`), so that the first frames visit costs what any other does.
     """
     from cwfs_ros.wfs.estimator import estimate_wavefront, load_algorithm, pair_geometry
     from cwfs_ros.wfs.instrument import load_instrument
@@ -285,7 +295,7 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
         except CwfsError:
             pass  # the synthetic pair may be rejected; the caches are built regardless
         t2 = time.perf_counter()
-        tiles = _warm_frames(corner, inst, settings, algo, sensor_config) if frames else 0
+        tiles = _warm_frames(corner, inst, settings, algo, frames) if frames else 0
         return {"corner": corner, "ok": True, "pid": os.getpid(),
                 "geometry_s": t1 - t0, "tiles": tiles, "tiles_s": time.perf_counter() - t2,
                 "total_s": time.perf_counter() - t0, "error": "",
@@ -297,13 +307,15 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
 
 
 def _warm_frames(corner: str, inst: Any, settings: EstimatorSettings, algo: Any,
-                 sensor_config: str) -> int:
-    """Build the field tiles of every star field of the corner's half-chips; the number
-    built (~1.2 s per map tile, about 9 per LSST corner)."""
+                 files: FrameFiles) -> int:
+    """Build the field tiles of every star field of the corner's half-chips (and read the
+    selection file); the number of tiles built (~1.2 s per map tile, 9 per LSST corner)."""
     from cwfs_ros.frames.field_position import corner_star_fields, load_half_chips
+    from cwfs_ros.frames.selection import load_selection_config
     from cwfs_ros.wfs.estimator import warm_star_fields
 
-    halves = load_half_chips(sensor_config or None)[corner]
+    load_selection_config(files.selection_config or None, solver=settings.solver)
+    halves = load_half_chips(files.sensor_config or None)[corner]
     side_fields, mids = corner_star_fields(halves, inst, settings.band)
     return warm_star_fields(inst, settings.band, inst.wavelength_nm(settings.band, None),
                             algo, side_fields, mids)
@@ -523,16 +535,16 @@ class CornerPool:
         return out
 
     def warm_up(self, fields: dict[str, tuple[tuple[float, float], tuple[float, float]]],
-                settings: EstimatorSettings, stamp_px: int = 0, frames: bool = False,
-                sensor_config: str = "", slot: int | None = None) -> list[Future]:
+                settings: EstimatorSettings, stamp_px: int = 0,
+                frames: FrameFiles | None = None, slot: int | None = None) -> list[Future]:
         """Start building each corner's caches in its worker (or in worker ``slot``, where
         it is about to move); futures of :func:`warm_corner`.
 
         ``fields`` maps corner -> (field_intra_deg, field_extra_deg); ``frames`` also builds
-        the field tiles of the corner's half-chips (``sensor_config``).
+        the field tiles of the corner's half-chips.
         """
         return [self._submit_on(c, warm_corner, c, fi, fe, settings, stamp_px, frames,
-                                sensor_config, slot=slot)[0]
+                                slot=slot)[0]
                 for c, (fi, fe) in fields.items() if c in self.affinity]
 
     def shutdown(self, wait: bool = False) -> None:

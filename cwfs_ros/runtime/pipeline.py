@@ -35,6 +35,7 @@ from cwfs_ros.layout import CORNERS, SIDES
 from cwfs_ros.runtime.corner_pool import (
     CornerJob,
     CornerOutcome,
+    FrameFiles,
     invalid_outcome,
     run_corner_job,
     run_frame_job,
@@ -191,6 +192,13 @@ class WavefrontPipeline:
     def _orientation(self, corner: str, side: str) -> Orientation:
         return Orientation(int(self._get(f"sensors.{corner}.{side}.rot90")),
                            str(self._get(f"sensors.{corner}.{side}.flip")))
+
+    def frame_warm(self) -> FrameFiles | None:
+        """What the workers' warm-up builds for frames (:attr:`warms_frames`), or None."""
+        if not self.warms_frames:
+            return None
+        return FrameFiles(str(self._get("sensor_config") or ""),
+                          str(self._get("selection_config") or ""))
 
     @property
     def warms_frames(self) -> bool:
