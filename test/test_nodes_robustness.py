@@ -435,14 +435,14 @@ def test_a_worker_lost_during_warm_up_is_warmed_again(ros_context, monkeypatch):
     real = CornerPool.warm_up
     failed: list[str] = []
 
-    def first_attempt_dies(self, fields, settings, stamp_px=0):
+    def first_attempt_dies(self, fields, settings, stamp_px=0, **kwargs):
         fresh = [c for c in fields if c not in failed]
         if fresh:
             failed.extend(fresh)
             f: Future = Future()
             f.set_exception(BrokenProcessPool("a child process terminated abruptly"))
             return [f for _ in fresh]
-        return real(self, fields, settings, stamp_px)
+        return real(self, fields, settings, stamp_px, **kwargs)
 
     monkeypatch.setattr(CornerPool, "warm_up", first_attempt_dies)
     wf = WavefrontNode(context=ros_context, parameter_overrides=[
