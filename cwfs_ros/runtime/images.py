@@ -133,16 +133,12 @@ WRAP_BAND = 0.25
 WRAP_MIN_PIXELS = 3
 
 
-def inspect_pixels(image: np.ndarray, encoding: str, *,
-                   swapped: np.ndarray | None = None, byte_order: bool = True) -> None:
+def inspect_pixels(image: np.ndarray, encoding: str) -> None:
     """Refuse pixels that a decoder alone can tell are wrong; raise :class:`ImageDecodeError`.
 
     Args:
         image: the decoded image (float64) as the message declares it.
         encoding: its encoding (a key of :data:`ENCODINGS`).
-        swapped: the same bytes decoded with the other byte order (multi-byte encodings);
-            None: made here from ``image`` (only where the test reads it).
-        byte_order: False skips the byte-order test.
 
     Reasons:
         ``byte_order``: integers: the image as declared is :data:`BYTE_ORDER_RATIO` times
@@ -161,10 +157,9 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
-    if byte_order and base.itemsize > 1:
+    if base.itemsize > 1:
         given = _row_blocks(image)
-        other = _row_blocks(swapped) if swapped is not None else _other_order(given, base)
-        _check_byte_order(given, other, base)
+        _check_byte_order(given, _other_order(given, base), base)
     if base.kind in "ui":
         info = np.iinfo(base)
         n_top = int(np.count_nonzero(image >= info.max))
@@ -193,7 +188,7 @@ def inspect_pixels(image: np.ndarray, encoding: str, *,
 # blocks tell it; reading all of a frame's millions of pixels twice cost the node ~100 ms an
 # image.
 BLOCK_ROWS = 4
-ORDER_PIXELS = 1 << 18
+ORDER_PIXELS = 1 << 16
 
 
 def _row_blocks(a: np.ndarray) -> np.ndarray:
@@ -228,22 +223,8 @@ def _roughness(a: np.ndarray) -> float:
     return total / n if n else 0.0
 
 
-# The float byte-order statistics (quartiles, subnormal share) are read from at most this
-# many pixels, evenly strided over the whole image: a frame's 2-8 million pixels would cost
-# ~100 ms a frame in the node's image callback for the same answer (a wrong order spreads
-# over tens of decades, a genuine image over a few).
-FLOAT_SAMPLE = 1 << 16
-
-
-def _sample(a: np.ndarray) -> np.ndarray:
-    """Every k-th pixel of ``a`` (k such that at most :data:`FLOAT_SAMPLE` remain)."""
-    flat = a.reshape(-1)
-    return flat[::max(1, -(-flat.size // FLOAT_SAMPLE))]
-
-
 def _log_spread(a: np.ndarray) -> float:
     """Interquartile range of log10|x| over the finite non-zero pixels (decades)."""
-    a = _sample(a)
     x = np.abs(a[np.isfinite(a)])
     x = x[x > 0]
     if x.size < 4:
@@ -253,7 +234,6 @@ def _log_spread(a: np.ndarray) -> float:
 
 
 def _subnormal_fraction(a: np.ndarray, tiny: float) -> float:
-    a = _sample(a)
     x = np.abs(a[np.isfinite(a)])
     return float(np.count_nonzero((x > 0) & (x < tiny))) / max(x.size, 1)
 
