@@ -131,7 +131,7 @@ def test_pupil_transmission_at_the_vignetting_edges_is_batoids(corner, side, off
 def _tile_served(inst, side: str, field: tuple[float, float], tile_deg: float) -> bool:
     from cwfs_ros.wfs import mapping
 
-    tile = mapping._tile_of(field, tile_deg)
+    tile = mapping.tile_of(field, tile_deg)
     return any(key[1] == side and key[5] == tile and entry is not None
                for key, entry in mapping._PUPIL_TILE_CACHE.items())
 

@@ -302,7 +302,7 @@ def test_tile_vignetting_from_aperture_edges_matches_the_direct_trace(
         for tiled, direct in pairs:
             np.testing.assert_array_equal(tiled, direct)
         key = next(k_ for k_ in mp._MAP_TILE_CACHE if k_[1] == side
-                   and k_[5] == mp._tile_of(_tile_fields(f0, 1, rng)[0], 0.125))
+                   and k_[5] == mp.tile_of(_tile_fields(f0, 1, rng)[0], 0.125))
         _, always, sweep, edges, _ = mp._MAP_TILE_CACHE[key]
         assert edges is not None and sweep.size > 500  # a real vignetting band
         # The tile is built at the third field and serves the next five: at most a few

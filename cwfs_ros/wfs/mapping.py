@@ -542,7 +542,7 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
                   annulus: np.ndarray):
     """The batoid mapping from its field tile (see above), or None for the direct path."""
     fx, fy = float(field_deg[0]), float(field_deg[1])
-    tile = _tile_of((fx, fy), tile_deg)
+    tile = tile_of((fx, fy), tile_deg)
     key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile, float(tile_deg),
            op)
     if not _tile_wanted(_map_tile_requests, key, (fx, fy), "map"):
@@ -1049,7 +1049,7 @@ def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
     or with ``tile_deg`` > 0 read from the field tile's polynomial (~0.3 ms; the tile's
     first fields are traced, as for the map tiles).  None: trace every point."""
     if tile_deg > 0:
-        tile = _tile_of(field_deg, tile_deg)
+        tile = tile_of(field_deg, tile_deg)
         key = (inst, side, float(defocus_mm), band, float(wavelength_nm), tile,
                float(tile_deg))
         if _tile_wanted(_pupil_tile_requests, key, field_deg, "pupil"):
@@ -1173,14 +1173,9 @@ def reset_field_tiles() -> None:
         counts[:] = [0, 0, 0, 0]
 
 
-def _tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
-    """Index of the ``tile_deg`` field tile holding ``field_deg``."""
-    return (int(np.floor(field_deg[0] / tile_deg)), int(np.floor(field_deg[1] / tile_deg)))
-
-
 def tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
     """Index (i, j) of the ``tile_deg`` field tile holding ``field_deg`` [deg]."""
-    return _tile_of(field_deg, tile_deg)
+    return (int(np.floor(field_deg[0] / tile_deg)), int(np.floor(field_deg[1] / tile_deg)))
 
 
 def tile_centre(tile: tuple[int, int], tile_deg: float) -> tuple[float, float]:
@@ -1233,8 +1228,8 @@ def _tile_local(field_deg: tuple[float, float], tile: tuple[int, int],
                 tile_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates of a field in its tile, -1..1 across the tile."""
     half = 0.5 * tile_deg
-    return (np.array((field_deg[0] - (tile[0] + 0.5) * tile_deg) / half),
-            np.array((field_deg[1] - (tile[1] + 0.5) * tile_deg) / half))
+    cx, cy = tile_centre(tile, tile_deg)
+    return np.array((field_deg[0] - cx) / half), np.array((field_deg[1] - cy) / half)
 
 
 def _tile_nodes(tile: tuple[int, int], tile_deg: float, n: int
@@ -1242,7 +1237,7 @@ def _tile_nodes(tile: tuple[int, int], tile_deg: float, n: int
     """The n x n node grid of a tile: local (u, v) and the node fields [deg]."""
     t = np.linspace(-1.0, 1.0, n)
     u, v = (a.ravel() for a in np.meshgrid(t, t))
-    cx, cy = (tile[0] + 0.5) * tile_deg, (tile[1] + 0.5) * tile_deg
+    cx, cy = tile_centre(tile, tile_deg)
     half = 0.5 * tile_deg
     return u, v, [(float(cx + half * a), float(cy + half * b))
                   for a, b in zip(u, v, strict=True)]
@@ -1299,7 +1294,7 @@ def design_zernikes_tiled(inst: Instrument, band: str, wavelength_nm: float,
     if inst.mapping != "batoid" or tile_deg <= 0:
         return design_zernikes_nm(inst, band, wavelength_nm, field_deg, jmax)
     fx, fy = float(field_deg[0]), float(field_deg[1])
-    tile = _tile_of((fx, fy), tile_deg)
+    tile = tile_of((fx, fy), tile_deg)
     key = (inst, band, float(wavelength_nm), tile, float(tile_deg), int(jmax))
     if not _tile_wanted(_design_tile_requests, key, (fx, fy), "design"):
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
