@@ -447,11 +447,11 @@ class WavefrontNode(ManagedNode):
                 return
             self._warm[corner] = info
             done = len(self._warm) == len(self.corners)
+            tiles = sum(int(w.get("tiles", 0)) for w in self._warm.values())
             self.workload.record_warm(int(info.get("pid", 0)), info.get("caches"))
         if not info.get("ok"):
             self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
         if done:
-            tiles = sum(int(w.get("tiles", 0)) for w in self._warm.values())
             self.get_logger().info(
                 f"workers warm after {time.monotonic() - t0:.2f} s"
                 + (f" ({tiles} field tiles of the half-chips built)" if tiles else ""))

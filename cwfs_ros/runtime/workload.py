@@ -102,13 +102,12 @@ class WorkloadMonitor:
         if len(costs) < len(affinity):
             return None, float("nan")
         loads = _loads(costs, affinity)
-        per_corner = {i: loads[i] / max(1, sum(1 for a in affinity.values() if a == i))
-                      for i in loads}
-        served = {i: sum(1 for a in affinity.values() if a == i) for i in loads}
-        backlog = {i: max(0, int(queued.get(i, 0)) - served[i]) * per_corner[i]
-                   for i in loads}
-        worst = max(loads, key=lambda i: loads[i] + backlog[i])
-        need = loads[worst] + backlog[worst]
+        served = {i: list(affinity.values()).count(i) for i in loads}
+        # Jobs queued beyond one visit's wait ahead of it, at the worker's mean corner cost.
+        need_s = {i: loads[i] * (1 + max(0, int(queued.get(i, 0)) - served[i]) / served[i])
+                  for i in loads}
+        worst = max(need_s, key=need_s.__getitem__)
+        need = need_s[worst]
         if need <= timeout_s:
             return None, need
         corners = "+".join(sorted(c for c, a in affinity.items() if a == worst))
