@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -37,6 +35,9 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
+from graph_process import start_bringup, stop_bringup, stop_client  # noqa: E402
+
 CORNERS = ("R00", "R04", "R40", "R44")
 SIDES = ("intra", "extra")
 
@@ -143,16 +144,6 @@ class Listener:
                     self.ready.set()
 
 
-def start_graph(domain: int, extra: list[str]) -> subprocess.Popen:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
-    return subprocess.Popen(
-        [sys.executable, "-m", "cwfs_ros.cli", "bringup", "--ros-args", "--log-level", "warn",
-         "-p", "input_mode:=frames", "-p", "rotator_angle_source:=fixed", *extra],
-        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        start_new_session=True, text=True)
-
-
 def run_visits(node, pubs: dict, listener: Listener, visits: list[dict], gap_s: float,
                wait_s: float) -> list[dict]:
     rows = []
@@ -230,7 +221,8 @@ def main() -> int:
                           str(REPO / "config" / "fastdds_profile.xml"))
     extra = [x for p in a.params for x in ("-p", p)]
     t_start = time.perf_counter()
-    proc = start_graph(domain, extra)
+    proc = start_bringup(["--log-level", "warn", "-p", "input_mode:=frames",
+                          "-p", "rotator_angle_source:=fixed", *extra], domain)
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -267,16 +259,8 @@ def main() -> int:
         print(f"bench failed: {exc}", file=sys.stderr)
         code = 1
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-        ex.shutdown(timeout_sec=1.0)
-        spinner.join(5.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        stop_bringup(proc)
+        stop_client(ex, spinner, node)
     return code
 
 

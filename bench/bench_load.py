@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -36,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 from bench_latency import CORNERS, render_visit  # noqa: E402
+from graph_process import start_bringup, stop_bringup, stop_client  # noqa: E402
 
 PAGE_KB = os.sysconf("SC_PAGE_SIZE") / 1024
 
@@ -86,17 +85,12 @@ def main() -> int:
     from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns
     from cwfs_ros.ros.convert import image_msg
 
-    env = dict(os.environ)
-    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     # One visit's images are sent again and again under new stamps, faster than visits come
     # and with no rotator: the controller's repeat and cadence guards and its rotator input
     # are set aside for this load benchmark.
-    proc = subprocess.Popen([sys.executable, "-m", "cwfs_ros.ros.launch", "bringup", "--ros-args",
-                             "--log-level", "warn", "-p", "rotator_angle_source:=fixed",
-                             "-p", "min_visit_period_s:=0.0", "-p", "refuse_repeats:=false"],
-                            env=env, cwd=REPO,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    proc = start_bringup(["--log-level", "warn", "-p", "rotator_angle_source:=fixed",
+                          "-p", "min_visit_period_s:=0.0", "-p", "refuse_repeats:=false"],
+                         domain)
     rclpy.init()
     node = rclpy.create_node("bench_load")
     pubs = {(c, s): node.create_publisher(Image, f"aos/wfs/{c}/{s}/image", IMAGE_QOS)
@@ -191,16 +185,8 @@ def main() -> int:
         print(f"bench failed: {exc}", file=sys.stderr)
         code = 1
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-        ex.shutdown(timeout_sec=1.0)
-        spin_thread.join(5.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        stop_bringup(proc, 15.0)
+        stop_client(ex, spin_thread, node)
     return code
 
 
