@@ -494,11 +494,15 @@ class WavefrontNode(ManagedNode):
         refused = self.pipeline.refusal(msg, corner, side, self.get_clock().now().nanoseconds)
         if refused is not None:
             self._reject(refused, warn=True)
-            return
-        # Decoded outside the lock: a frame takes a while, and the timers wait on the lock.
-        rec, bad = self.pipeline.record(msg, corner, side, time.monotonic())
-        if bad is not None:
-            self._reject(bad, warn=True)
+            # Refused for what it is, it still pairs: its corner's result names the reason.
+            rec = self.pipeline.refused_record(refused, time.monotonic())
+            if rec is None:
+                return
+        else:
+            # Decoded outside the lock: a frame takes a while, and the timers wait on the lock.
+            rec, bad = self.pipeline.record(msg, corner, side, time.monotonic())
+            if bad is not None:
+                self._reject(bad, warn=True)
         with self._lock:
             self.stats["images"] += 1
             step = self.pipeline.add_record(rec)

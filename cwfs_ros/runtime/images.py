@@ -25,6 +25,7 @@ __all__ = [
     "ENCODINGS",
     "ImageDecodeError",
     "decode_checked",
+    "adc_depth",
     "decode_image",
     "inspect_pixels",
 ]
@@ -131,6 +132,17 @@ SCALE_RANGE = (1e-150, 1e150)
 # next to the bias is not a wrap.
 WRAP_BAND = 0.25
 WRAP_MIN_PIXELS = 3
+# Converters narrower than the type (a 12-bit ADC in 16UC1 wraps at 4096) are judged at the
+# smallest depth that holds the data, from MIN_ADC_BITS: below it too few levels tell a wrap
+# from a sharp donut edge, as for 8-bit types.
+MIN_ADC_BITS = 10
+# A clip, not a wrap: a clipped donut on a zero background drops from its plateau to 0 in
+# one pixel as a wrap does, but its light holds a plateau of pixels at exactly the image
+# maximum; a wrap leaves the light noisy just below the wrap point (one or two pixels share
+# the maximum). At least CLIP_MIN_PIXELS pixels at the maximum, and this fraction of the
+# number of high step pixels, say clipped.
+CLIP_MIN_PIXELS = 8
+CLIP_PLATEAU_FRACTION = 0.1
 
 
 def inspect_pixels(image: np.ndarray, encoding: str) -> None:
@@ -169,6 +181,9 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         # or two of those.
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
             _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
+            depth = adc_depth(image, base)
+            if depth is not None:
+                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth))
         if n_top:
             raise ImageDecodeError(
                 "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
@@ -269,23 +284,53 @@ def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) ->
             "fix is_bigendian")
 
 
-def _check_wrap(image: np.ndarray, encoding: str, lo: float, span: float) -> None:
-    u = (image - lo) / span  # position in the type's range, 0..1
+def adc_depth(image: np.ndarray, base: np.dtype) -> int | None:
+    """Bits of the narrowest converter that holds the data, when narrower than the type.
+
+    A 12-bit ADC's counts stored in 16UC1 never exceed 4095, and a wrap there goes from 4095
+    to 0, far below the type's range. The depth is that of the largest value (values >= 0
+    only: a signed image holding negative counts is no unsigned converter's); None below
+    :data:`MIN_ADC_BITS` or when it is the type's own range (judged as such already).
+    """
+    if image.size == 0 or float(np.min(image)) < 0:
+        return None
+    peak = float(np.max(image))
+    if not np.isfinite(peak):
+        return None
+    depth = int(peak).bit_length()
+    value_bits = 8 * base.itemsize - (1 if base.kind == "i" else 0)
+    return depth if MIN_ADC_BITS <= depth < value_bits else None
+
+
+def _check_wrap(image: np.ndarray, what: str, lo: float, span: float) -> None:
+    """Raise ``wrapped`` for the steps a wrap at ``lo + span`` leaves (:data:`WRAP_BAND`),
+    or ``saturated`` when their high side is a plateau at the image maximum (a clip)."""
+    u = (image - lo) / span  # position in the range, 0..1
     low = u < WRAP_BAND
     high = u >= 1.0 - WRAP_BAND
     if not (low.any() and high.any()):
         return
     high_nb, low_nb = _neighbours(high), _neighbours(low)
     low_step = int(np.count_nonzero(low & (high_nb > 0)))
-    high_step = int(np.count_nonzero(high & (low_nb > 0)))
+    high_side = high & (low_nb > 0)
+    high_step = int(np.count_nonzero(high_side))
     # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
     # neighbours high (a hot pixel is the opposite: high among low ones).
     enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
-    if (low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed:
+    if not ((low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed):
+        return
+    peak = float(np.max(image))
+    at_peak = int(np.count_nonzero(image == peak))
+    if at_peak >= max(CLIP_MIN_PIXELS, CLIP_PLATEAU_FRACTION * high_step):
         raise ImageDecodeError(
-            "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {encoding} "
-            f"range next to {high_step} in its top quarter ({enclosed} surrounded by them): "
-            "counts that wrapped around instead of clipping; clip at the full scale")
+            "saturated", f"{at_peak} pixel(s) sit at the image maximum {peak:g}, and "
+            f"{high_step} at the top of sharp steps to the bottom of the {what} range: a "
+            "clipped plateau (the converter or the camera's processing saturated), not a wrap")
+    raise ImageDecodeError(
+        "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {what} range "
+        f"(0..{span:g} above {lo:g}) next to {high_step} in its top quarter ({enclosed} "
+        "surrounded by them): counts that wrapped around instead of clipping; clip at the "
+        "full scale")
 
 
 def _neighbours(mask: np.ndarray) -> np.ndarray:
