@@ -113,6 +113,43 @@ def test_sequence_gaps_with_several_publishers_are_a_lower_bound():
     assert g.dropped == 4
 
 
+def test_the_pipeline_refuses_stamp_0_and_oversized_pairs_before_decoding():
+    pytest.importorskip("sensor_msgs")
+    from sensor_msgs.msg import Image as Msg
+
+    from cwfs_ros.cli.replay import node_parameters
+    from cwfs_ros.runtime.pipeline import WavefrontPipeline
+
+    p = node_parameters("wavefront_node")
+    pipe = WavefrontPipeline(p.__getitem__, ["R00"])
+    clock = T + 10 * SEC
+
+    def msg(stamp_ns: int, side_px: int, data: bytes = b"") -> Msg:
+        m = Msg(height=side_px, width=side_px, encoding="16UC1", step=2 * side_px, data=data)
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp_ns, SEC)
+        return m
+
+    zero = pipe.refusal(msg(0, 160), "R00", "intra", clock)
+    assert zero is not None and zero.reason == "no_stamp"
+    assert pipe.refused_record(zero, 0.0) is None  # stamp 0 names no visit: not paired
+    # 8192 x 8192: 537 MB as float64, a pair 1074 MB > 256 MB. Judged without the data.
+    big = pipe.refusal(msg(T, 8192), "R00", "intra", clock)
+    assert big is not None and big.reason == "too_large" and "1074 MB" in big.message
+    assert pipe.refusal(msg(T, 4000), "R00", "intra", clock) is None  # 2 x 128 MB fit 256
+    p["max_pending_mb"] = 200.0
+    assert pipe.refusal(msg(T, 4000), "R00", "intra", clock).reason == "too_large"
+    # A refused image still pairs: the corner's result names its reason, not "unpaired".
+    rec = pipe.refused_record(big, 0.0)
+    assert rec is not None and rec.image is None and rec.reason == "too_large"
+    pipe.add_record(rec)
+    good, _ = pipe.record(msg(T, 160, data=np.full((160, 160), 1000, "<u2").tobytes()),
+                          "R00", "extra", 0.1)
+    step = pipe.add_record(good)
+    assert step.pair is not None and step.pair.reason == "too_large"
+    out = pipe.job_for(step.pair)
+    assert not out.valid and out.reason == "too_large"
+
+
 # ---------------------------------------------------------------------------- over DDS
 rclpy = pytest.importorskip("rclpy")
 
