@@ -28,13 +28,13 @@ def donut_shape(n: int = 160, radius_px: float = 60.0, seeing_px: float = 1.5) -
 
 
 def counts(bits: int, peak_fraction: float, bias_fraction: float, seed: int,
-           wrap: bool = False) -> np.ndarray:
+           wrap: bool = False, seeing_px: float = 1.5) -> np.ndarray:
     """Raw counts of a ``bits``-bit converter (Poisson light, bias, 5 ADU read noise), the
     peak at ``peak_fraction`` of its range; past the range they wrap (``wrap``) or clip."""
     rng = np.random.default_rng(seed)
     top = float(2 ** bits)
     bias = bias_fraction * top
-    shape = donut_shape()
+    shape = donut_shape(seeing_px=seeing_px)
     x = np.round(rng.poisson(shape * (peak_fraction * top - bias)) + bias
                  + rng.normal(0.0, 5.0, shape.shape))
     return np.mod(x, top) if wrap else np.clip(x, 0, top - 1)
@@ -68,6 +68,10 @@ def test_genuine_counts_of_any_converter_depth_are_taken():
         for k, (peak, bias) in enumerate([(0.5, 0.01), (0.75, 0.05), (0.9, 0.1),
                                           (0.98, 0.02)]):
             assert reason(counts(bits, peak, bias, seed=100 + k)) == "", (bits, peak, bias)
+    # Sharp edges (no seeing blur): the light steps from the bias to the top quarter of the
+    # 12-bit range in one pixel, as a wrap does, but nothing lies below the bias.
+    for k, peak in enumerate((0.8, 0.9, 0.98)):
+        assert reason(counts(12, peak, 0.05, seed=200 + k, seeing_px=0.3)) == "", peak
 
 
 def test_adc_depth():
@@ -80,6 +84,18 @@ def test_adc_depth():
     assert adc_depth(np.array([[0.0, 300.0]]), u2) is None  # too few levels to judge
     assert adc_depth(np.array([[-1.0, 4095.0]]), i4) is None  # negative: not a raw ADC
     assert adc_depth(np.array([[0.0, 2.0 ** 18 - 1]]), i4) == 18
+
+
+def test_a_wrap_at_the_converter_depth_needs_light_below_the_background():
+    from cwfs_ros.runtime.images import background_floor
+
+    a = counts(12, 1.2, 0.05, seed=11, wrap=True)
+    assert 150 < background_floor(a) < 205  # bias 205 ADU, read noise 5 ADU
+    assert reason(a) == "wrapped"
+    # Without a bias (a background within its noise of 0) the wrap cannot be told from a
+    # sharp edge to the background at that depth: the test abstains (docs/reliability.md).
+    flat = np.zeros((160, 160))
+    assert background_floor(flat) < 0
 
 
 def test_a_clip_below_full_scale_on_a_zero_background_is_saturated_not_wrapped():

@@ -26,6 +26,7 @@ __all__ = [
     "ImageDecodeError",
     "decode_checked",
     "adc_depth",
+    "background_floor",
     "decode_image",
     "inspect_pixels",
 ]
@@ -136,6 +137,13 @@ WRAP_MIN_PIXELS = 3
 # smallest depth that holds the data, from MIN_ADC_BITS: below it too few levels tell a wrap
 # from a sharp donut edge, as for 8-bit types.
 MIN_ADC_BITS = 10
+# At that depth a genuine donut's edge can step from the bias to the top quarter in one pixel
+# (the data fill 50-100 % of the range by construction), so a wrap must also show what no
+# genuine pixel does: light pixels wrapped below the background, more than FLOOR_SIGMAS
+# times its noise (median and MAD of the image's outer BORDER_PX frame). Raw counts carry a
+# bias; with none (a background within that noise of 0) the test cannot tell and abstains.
+FLOOR_SIGMAS = 6.0
+BORDER_PX = 4
 # A clip, not a wrap: a clipped donut on a zero background drops from its plateau to 0 in
 # one pixel as a wrap does, but its light holds a plateau of pixels at exactly the image
 # maximum; a wrap leaves the light noisy just below the wrap point (one or two pixels share
@@ -182,8 +190,9 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
             _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
             depth = adc_depth(image, base)
-            if depth is not None:
-                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth))
+            floor = background_floor(image) if depth is not None else 0.0
+            if depth is not None and floor > 0:
+                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth), floor)
         if n_top:
             raise ImageDecodeError(
                 "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
@@ -302,11 +311,30 @@ def adc_depth(image: np.ndarray, base: np.dtype) -> int | None:
     return depth if MIN_ADC_BITS <= depth < value_bits else None
 
 
-def _check_wrap(image: np.ndarray, what: str, lo: float, span: float) -> None:
+def background_floor(image: np.ndarray) -> float:
+    """The level below which no genuine pixel lies: the background (median of the outer
+    :data:`BORDER_PX` frame) less :data:`FLOOR_SIGMAS` times its noise (1.4826 MAD, at
+    least 1 count)."""
+    h, w = image.shape
+    b = min(BORDER_PX, h // 4, w // 4)
+    if b < 1:
+        return 0.0
+    border = np.concatenate([image[:b].ravel(), image[-b:].ravel(), image[b:-b, :b].ravel(),
+                             image[b:-b, -b:].ravel()])
+    med = float(np.median(border))
+    sigma = max(1.4826 * float(np.median(np.abs(border - med))), 1.0)
+    return med - FLOOR_SIGMAS * sigma
+
+
+def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
+                floor: float | None = None) -> None:
     """Raise ``wrapped`` for the steps a wrap at ``lo + span`` leaves (:data:`WRAP_BAND`),
-    or ``saturated`` when their high side is a plateau at the image maximum (a clip)."""
+    or ``saturated`` when their high side is a plateau at the image maximum (a clip).
+    ``floor``: only low pixels below it count (:func:`background_floor`)."""
     u = (image - lo) / span  # position in the range, 0..1
     low = u < WRAP_BAND
+    if floor is not None:
+        low &= image < floor
     high = u >= 1.0 - WRAP_BAND
     if not (low.any() and high.any()):
         return
@@ -328,9 +356,10 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float) -> None:
             "clipped plateau (the converter or the camera's processing saturated), not a wrap")
     raise ImageDecodeError(
         "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {what} range "
-        f"(0..{span:g} above {lo:g}) next to {high_step} in its top quarter ({enclosed} "
-        "surrounded by them): counts that wrapped around instead of clipping; clip at the "
-        "full scale")
+        f"(0..{span:g} above {lo:g})"
+        + ("" if floor is None else f", below the background ({floor:.0f} at most),")
+        + f" next to {high_step} in its top quarter ({enclosed} surrounded by them): counts "
+        "that wrapped around instead of clipping; clip at the full scale")
 
 
 def _neighbours(mask: np.ndarray) -> np.ndarray:
