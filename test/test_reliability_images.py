@@ -86,16 +86,24 @@ def test_adc_depth():
     assert adc_depth(np.array([[0.0, 2.0 ** 18 - 1]]), i4) == 18
 
 
-def test_a_wrap_at_the_converter_depth_needs_light_below_the_background():
+def test_a_wrap_at_the_converter_depth_is_told_from_a_sharp_edge():
     from cwfs_ros.runtime.images import background_floor
 
+    # With a bias: wrapped light falls below the background.
     a = counts(12, 1.2, 0.05, seed=11, wrap=True)
     assert 150 < background_floor(a) < 205  # bias 205 ADU, read noise 5 ADU
     assert reason(a) == "wrapped"
-    # Without a bias (a background within its noise of 0) the wrap cannot be told from a
-    # sharp edge to the background at that depth: the test abstains (docs/reliability.md).
-    flat = np.zeros((160, 160))
-    assert background_floor(flat) < 0
+    # Without one (a background of 0): wrapped pixels lie buried in the light, with 3 or 4
+    # of their neighbours in the top quarter; a sharp edge, from the light at 98 % of the
+    # range straight to 0, leaves its background pixels 1 or 2.
+    assert background_floor(np.zeros((160, 160))) < 0
+    rng = np.random.default_rng(12)
+    shape = donut_shape(seeing_px=0.3)
+    for bits, over in ((10, 1.03), (12, 1.01)):  # the light's noise straddles the wrap
+        top = 2 ** bits
+        assert reason(np.mod(rng.poisson(shape * over * top), top)) == "wrapped", bits
+        for peak in (0.9, 0.98):
+            assert reason(np.minimum(rng.poisson(shape * peak * top), top - 1)) == "", peak
 
 
 def test_a_clip_below_full_scale_on_a_zero_background_is_saturated_not_wrapped():

@@ -140,17 +140,23 @@ MIN_ADC_BITS = 10
 # At that depth a genuine donut's edge can step from the bias to the top quarter in one pixel
 # (the data fill 50-100 % of the range by construction), so a wrap must also show what no
 # genuine pixel does: light pixels wrapped below the background, more than FLOOR_SIGMAS
-# times its noise (median and MAD of the image's outer BORDER_PX frame). Raw counts carry a
-# bias; with none (a background within that noise of 0) the test cannot tell and abstains.
+# times its noise (median and MAD of the image's outer BORDER_PX frame); or, without a bias
+# to fall below, at least WRAP_MIN_PIXELS bottom-quarter pixels buried in the light, with 3
+# or 4 of their 4 neighbours in the top quarter (an edge, even a sharp one, leaves them 1 or
+# 2).
 FLOOR_SIGMAS = 6.0
 BORDER_PX = 4
 # A clip, not a wrap: a clipped donut on a zero background drops from its plateau to 0 in
 # one pixel as a wrap does, but its light holds a plateau of pixels at exactly the image
-# maximum; a wrap leaves the light noisy just below the wrap point (one or two pixels share
-# the maximum). At least CLIP_MIN_PIXELS pixels at the maximum, and this fraction of the
-# number of high step pixels, say clipped.
+# maximum; a wrap leaves the light noisy just below the wrap point, where the maximum holds
+# about as many pixels as the levels just under it. At least CLIP_MIN_PIXELS pixels at the
+# maximum, CLIP_PLATEAU_FRACTION of the number of high step pixels, and CLIP_PEAK_RATIO
+# times the mean count of the CLIP_LEVELS levels under it (a spike in the histogram) say
+# clipped.
 CLIP_MIN_PIXELS = 8
 CLIP_PLATEAU_FRACTION = 0.1
+CLIP_PEAK_RATIO = 4.0
+CLIP_LEVELS = 3
 
 
 def inspect_pixels(image: np.ndarray, encoding: str) -> None:
@@ -190,9 +196,9 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
             _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
             depth = adc_depth(image, base)
-            floor = background_floor(image) if depth is not None else 0.0
-            if depth is not None and floor > 0:
-                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth), floor)
+            if depth is not None:
+                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth),
+                            background_floor(image))
         if n_top:
             raise ImageDecodeError(
                 "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
@@ -333,23 +339,29 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
     ``floor``: only low pixels below it count (:func:`background_floor`)."""
     u = (image - lo) / span  # position in the range, 0..1
     low = u < WRAP_BAND
-    if floor is not None:
-        low &= image < floor
     high = u >= 1.0 - WRAP_BAND
     if not (low.any() and high.any()):
         return
-    high_nb, low_nb = _neighbours(high), _neighbours(low)
+    high_nb = _neighbours(high)
+    buried = 0
+    if floor is not None:
+        buried = int(np.count_nonzero(low & (high_nb >= 3)))
+        low &= image < floor
+    low_nb = _neighbours(low)
     low_step = int(np.count_nonzero(low & (high_nb > 0)))
     high_side = high & (low_nb > 0)
     high_step = int(np.count_nonzero(high_side))
     # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
     # neighbours high (a hot pixel is the opposite: high among low ones).
     enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
-    if not ((low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed):
+    if not ((low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed
+            or buried >= WRAP_MIN_PIXELS):
         return
     peak = float(np.max(image))
     at_peak = int(np.count_nonzero(image == peak))
-    if at_peak >= max(CLIP_MIN_PIXELS, CLIP_PLATEAU_FRACTION * high_step):
+    under = int(np.count_nonzero((image < peak) & (image >= peak - CLIP_LEVELS)))
+    if at_peak >= max(CLIP_MIN_PIXELS, CLIP_PLATEAU_FRACTION * high_step,
+                      CLIP_PEAK_RATIO * under / CLIP_LEVELS):
         raise ImageDecodeError(
             "saturated", f"{at_peak} pixel(s) sit at the image maximum {peak:g}, and "
             f"{high_step} at the top of sharp steps to the bottom of the {what} range: a "
@@ -358,8 +370,9 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
         "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {what} range "
         f"(0..{span:g} above {lo:g})"
         + ("" if floor is None else f", below the background ({floor:.0f} at most),")
-        + f" next to {high_step} in its top quarter ({enclosed} surrounded by them): counts "
-        "that wrapped around instead of clipping; clip at the full scale")
+        + f" next to {high_step} in its top quarter ({enclosed} surrounded by them"
+        + ("" if floor is None else f"; {buried} buried in it on 3 or 4 sides")
+        + "): counts that wrapped around instead of clipping; clip at the full scale")
 
 
 def _neighbours(mask: np.ndarray) -> np.ndarray:
