@@ -141,9 +141,9 @@ MIN_ADC_BITS = 10
 # (the data fill 50-100 % of the range by construction), so a wrap must also show what no
 # genuine pixel does: light pixels wrapped below the background, more than FLOOR_SIGMAS
 # times its noise (median and MAD of the image's outer BORDER_PX frame); or, without a bias
-# to fall below, at least WRAP_MIN_PIXELS bottom-quarter pixels buried in the light, with 3
-# or 4 of their 4 neighbours in the top quarter (an edge, even a sharp one, leaves them 1 or
-# 2).
+# to fall below, at least WRAP_MIN_PIXELS bottom-quarter pixels buried in the light, all 4
+# of their neighbours in the top quarter (an edge, even a pixel-sharp one of a convex
+# donut or hole, leaves at most 3).
 FLOOR_SIGMAS = 6.0
 BORDER_PX = 4
 # A clip, not a wrap: a clipped donut on a zero background drops from its plateau to 0 in
@@ -179,7 +179,13 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
             quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side), or a pixel in the
             bottom quarter with 2 or more of its 4 neighbours in the top one (a pixel or
             two wrapped inside the light). 16- and 32-bit integers only: 8 bits hold too
-            few levels to tell a wrap from a sharp donut edge.
+            few levels to tell a wrap from a sharp donut edge. The same at the depth of a
+            narrower converter that holds the data (:func:`adc_depth`: a 12-bit ADC wraps
+            at 4096), where the bottom-quarter pixels must also lie below the background
+            (:func:`background_floor`), or be buried in the light (all 4 neighbours in
+            the top quarter, :data:`WRAP_MIN_PIXELS` of them).
+            When the steps are found but the light holds a plateau at the image maximum
+            (:data:`CLIP_MIN_PIXELS` ...), the image was clipped: ``saturated``.
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
@@ -194,9 +200,14 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         # pixel exactly at full scale by chance only: the wrap test comes before the one
         # or two of those.
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
-            _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
+            # A wrap steps by more than half the range between neighbours: without such a
+            # step (most images) neither test has anything to find.
+            step = _largest_step(image)
+            span = float(info.max) - float(info.min) + 1
+            if step > (1.0 - 2 * WRAP_BAND) * span:
+                _check_wrap(image, encoding, float(info.min), span)
             depth = adc_depth(image, base)
-            if depth is not None:
+            if depth is not None and step > (1.0 - 2 * WRAP_BAND) * (1 << depth):
                 _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth),
                             background_floor(image))
         if n_top:
@@ -317,6 +328,16 @@ def adc_depth(image: np.ndarray, base: np.dtype) -> int | None:
     return depth if MIN_ADC_BITS <= depth < value_bits else None
 
 
+def _largest_step(image: np.ndarray) -> float:
+    """The largest absolute difference of horizontal or vertical neighbours."""
+    out = 0.0
+    for axis in (0, 1):
+        if image.shape[axis] > 1:
+            d = np.diff(image, axis=axis)
+            out = max(out, float(np.max(d)), -float(np.min(d)))
+    return out
+
+
 def background_floor(image: np.ndarray) -> float:
     """The level below which no genuine pixel lies: the background (median of the outer
     :data:`BORDER_PX` frame) less :data:`FLOOR_SIGMAS` times its noise (1.4826 MAD, at
@@ -345,7 +366,7 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
     high_nb = _neighbours(high)
     buried = 0
     if floor is not None:
-        buried = int(np.count_nonzero(low & (high_nb >= 3)))
+        buried = int(np.count_nonzero(low & (high_nb == 4)))
         low &= image < floor
     low_nb = _neighbours(low)
     low_step = int(np.count_nonzero(low & (high_nb > 0)))
@@ -371,7 +392,7 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
         f"(0..{span:g} above {lo:g})"
         + ("" if floor is None else f", below the background ({floor:.0f} at most),")
         + f" next to {high_step} in its top quarter ({enclosed} surrounded by them"
-        + ("" if floor is None else f"; {buried} buried in it on 3 or 4 sides")
+        + ("" if floor is None else f"; {buried} buried in it")
         + "): counts that wrapped around instead of clipping; clip at the full scale")
 
 
