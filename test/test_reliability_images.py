@@ -78,12 +78,12 @@ def test_adc_depth():
     from cwfs_ros.runtime.images import adc_depth
 
     u2, i4 = np.dtype("u2"), np.dtype("i4")
-    assert adc_depth(np.array([[0.0, 4095.0]]), u2) == 12
-    assert adc_depth(np.array([[0.0, 4096.0]]), u2) == 13
-    assert adc_depth(np.array([[0.0, 40000.0]]), u2) is None  # the type's own range
-    assert adc_depth(np.array([[0.0, 300.0]]), u2) is None  # too few levels to judge
-    assert adc_depth(np.array([[-1.0, 4095.0]]), i4) is None  # negative: not a raw ADC
-    assert adc_depth(np.array([[0.0, 2.0 ** 18 - 1]]), i4) == 18
+    assert adc_depth((0.0, 4095.0), u2) == 12
+    assert adc_depth((0.0, 4096.0), u2) == 13
+    assert adc_depth((0.0, 40000.0), u2) is None  # the type's own range
+    assert adc_depth((0.0, 300.0), u2) is None  # too few levels to judge
+    assert adc_depth((-1.0, 4095.0), i4) is None  # negative: not a raw ADC
+    assert adc_depth((0.0, 2.0 ** 18 - 1), i4) == 18
 
 
 def test_a_wrap_at_the_converter_depth_is_told_from_a_sharp_edge():

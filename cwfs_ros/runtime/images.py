@@ -200,16 +200,13 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         # pixel exactly at full scale by chance only: the wrap test comes before the one
         # or two of those.
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
-            # A wrap steps by more than half the range between neighbours: without such a
-            # step (most images) neither test has anything to find.
-            step = _largest_step(image)
-            span = float(info.max) - float(info.min) + 1
-            if step > (1.0 - 2 * WRAP_BAND) * span:
-                _check_wrap(image, encoding, float(info.min), span)
-            depth = adc_depth(image, base)
-            if depth is not None and step > (1.0 - 2 * WRAP_BAND) * (1 << depth):
+            bounds = (float(np.min(image)), float(np.max(image)))
+            _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1,
+                        peak=bounds[1])
+            depth = adc_depth(bounds, base)
+            if depth is not None:
                 _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth),
-                            background_floor(image))
+                            background_floor(image), peak=bounds[1])
         if n_top:
             raise ImageDecodeError(
                 "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
@@ -310,32 +307,21 @@ def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) ->
             "fix is_bigendian")
 
 
-def adc_depth(image: np.ndarray, base: np.dtype) -> int | None:
+def adc_depth(bounds: tuple[float, float], base: np.dtype) -> int | None:
     """Bits of the narrowest converter that holds the data, when narrower than the type.
 
     A 12-bit ADC's counts stored in 16UC1 never exceed 4095, and a wrap there goes from 4095
-    to 0, far below the type's range. The depth is that of the largest value (values >= 0
-    only: a signed image holding negative counts is no unsigned converter's); None below
-    :data:`MIN_ADC_BITS` or when it is the type's own range (judged as such already).
+    to 0, far below the type's range. ``bounds``: the image's (smallest, largest) value. The
+    depth is that of the largest value (values >= 0 only: a signed image holding negative
+    counts is no unsigned converter's); None below :data:`MIN_ADC_BITS` or when it is the
+    type's own range (judged as such already).
     """
-    if image.size == 0 or float(np.min(image)) < 0:
-        return None
-    peak = float(np.max(image))
-    if not np.isfinite(peak):
+    low, peak = bounds
+    if not (np.isfinite(low) and np.isfinite(peak)) or low < 0:
         return None
     depth = int(peak).bit_length()
     value_bits = 8 * base.itemsize - (1 if base.kind == "i" else 0)
     return depth if MIN_ADC_BITS <= depth < value_bits else None
-
-
-def _largest_step(image: np.ndarray) -> float:
-    """The largest absolute difference of horizontal or vertical neighbours."""
-    out = 0.0
-    for axis in (0, 1):
-        if image.shape[axis] > 1:
-            d = np.diff(image, axis=axis)
-            out = max(out, float(np.max(d)), -float(np.min(d)))
-    return out
 
 
 def background_floor(image: np.ndarray) -> float:
@@ -353,32 +339,52 @@ def background_floor(image: np.ndarray) -> float:
     return med - FLOOR_SIGMAS * sigma
 
 
+def _step_counts(image: np.ndarray, low_below: float, high_from: float,
+                 floor: float) -> tuple[int, int, int, int]:
+    """Around the pixels at or above ``high_from`` (the top band; few in a donut image, so
+    only they and their 4 neighbours are visited): (low pixels below ``min(low_below,
+    floor)`` next to them, top-band pixels next to such a low one, such low pixels with 2 or
+    more top-band neighbours, pixels below ``low_below`` with all 4 neighbours in the top
+    band)."""
+    hr, hc = np.nonzero(image >= high_from)
+    if hr.size == 0:
+        return 0, 0, 0, 0
+    h, w = image.shape
+    near_low = np.zeros(hr.size, dtype=bool)
+    band, below = [], []  # flat indices of low neighbours, once per top-band neighbour
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r, c = hr + dr, hc + dc
+        ok = np.flatnonzero((r >= 0) & (r < h) & (c >= 0) & (c < w))
+        v = image[r[ok], c[ok]]
+        in_band = v < low_below
+        band.append((r[ok] * w + c[ok])[in_band])
+        low = in_band & (v < floor)
+        below.append((r[ok] * w + c[ok])[low])
+        near_low[ok[low]] = True
+    _, n_band = np.unique(np.concatenate(band), return_counts=True)
+    _, n_below = np.unique(np.concatenate(below), return_counts=True)
+    return (int(n_below.size), int(np.count_nonzero(near_low)),
+            int(np.count_nonzero(n_below >= 2)), int(np.count_nonzero(n_band == 4)))
+
+
 def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
-                floor: float | None = None) -> None:
+                floor: float | None = None, *, peak: float) -> None:
     """Raise ``wrapped`` for the steps a wrap at ``lo + span`` leaves (:data:`WRAP_BAND`),
     or ``saturated`` when their high side is a plateau at the image maximum (a clip).
-    ``floor``: only low pixels below it count (:func:`background_floor`)."""
-    u = (image - lo) / span  # position in the range, 0..1
-    low = u < WRAP_BAND
-    high = u >= 1.0 - WRAP_BAND
-    if not (low.any() and high.any()):
-        return
-    high_nb = _neighbours(high)
-    buried = 0
-    if floor is not None:
-        buried = int(np.count_nonzero(low & (high_nb == 4)))
-        low &= image < floor
-    low_nb = _neighbours(low)
-    low_step = int(np.count_nonzero(low & (high_nb > 0)))
-    high_side = high & (low_nb > 0)
-    high_step = int(np.count_nonzero(high_side))
+    ``floor``: only low pixels below it count (:func:`background_floor`), or, without
+    one, those buried in the top band. ``peak``: the image maximum."""
+    if peak < lo + (1.0 - WRAP_BAND) * span:
+        return  # nothing in the top band
+    low_step, high_step, enclosed, buried = _step_counts(
+        image, lo + WRAP_BAND * span, lo + (1.0 - WRAP_BAND) * span,
+        np.inf if floor is None else floor)
+    if floor is None:
+        buried = 0
     # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
     # neighbours high (a hot pixel is the opposite: high among low ones).
-    enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
     if not ((low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed
             or buried >= WRAP_MIN_PIXELS):
         return
-    peak = float(np.max(image))
     at_peak = int(np.count_nonzero(image == peak))
     under = int(np.count_nonzero((image < peak) & (image >= peak - CLIP_LEVELS)))
     if at_peak >= max(CLIP_MIN_PIXELS, CLIP_PLATEAU_FRACTION * high_step,
@@ -394,16 +400,6 @@ def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
         + f" next to {high_step} in its top quarter ({enclosed} surrounded by them"
         + ("" if floor is None else f"; {buried} buried in it")
         + "): counts that wrapped around instead of clipping; clip at the full scale")
-
-
-def _neighbours(mask: np.ndarray) -> np.ndarray:
-    """Number of each pixel's 4 neighbours in ``mask``."""
-    n = np.zeros(mask.shape, dtype=np.int8)
-    n[1:, :] += mask[:-1, :]
-    n[:-1, :] += mask[1:, :]
-    n[:, 1:] += mask[:, :-1]
-    n[:, :-1] += mask[:, 1:]
-    return n
 
 
 def _as_bytes(data: object) -> np.ndarray:
