@@ -16,12 +16,15 @@ out  ``/aos/wfs/wavefront``              cwfs_msgs/WavefrontVector, when the fou
 out  ``/diagnostics``                    state, counts of rejected inputs and the last reason,
      pending memory, messages lost, and any other publisher on the topics this node owns.
 
-Input guards (docs/reliability.md): an image stamped more than ``max_future_s`` ahead of the
-node's clock, or whose ``header.frame_id`` names another corner or side than its topic's, is
-refused (``future_stamp``, ``frame_mismatch``); images waiting for their partners hold at most
-``max_pending_mb`` (the oldest is dropped first, ``memory_limit``); two different images for
-one corner, side and stamp make that corner invalid (``conflicting_images``, see
-:mod:`cwfs_ros.runtime.visits`). Rejections are logged at most once per ``log_throttle_s`` per
+Input guards (docs/reliability.md): an image stamped 0, or more than ``max_future_s`` ahead
+of the node's clock, whose pair could not fit within ``max_pending_mb``, or whose
+``header.frame_id`` names another corner or side than its topic's, is refused (``no_stamp``,
+``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic while
+more than ``max_image_publishers`` publishers are matched on it (``untrusted_source``; every
+image topic with several publishers is named on /diagnostics); images waiting for their
+partners hold at most ``max_pending_mb`` (the oldest is dropped first, ``memory_limit``);
+two different images for one corner, side and stamp make that corner invalid
+(``conflicting_images``, see :mod:`cwfs_ros.runtime.visits`). Rejections are logged at most once per ``log_throttle_s`` per
 reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
@@ -125,6 +128,7 @@ class WavefrontNode(ManagedNode):
         self._lock = threading.RLock()
         self.pool: CornerPool | None = None
         self._subs: list = []
+        self._image_subs: dict = {}  # (corner, side) -> its image subscription
         self.pub_corner: dict = {}
         self.pub_vector = None
         self._expiry_timer = None
