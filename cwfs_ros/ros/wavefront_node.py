@@ -24,8 +24,8 @@ more than ``max_image_publishers`` publishers are matched on it (``untrusted_sou
 image topic with several publishers is named on /diagnostics); images waiting for their
 partners hold at most ``max_pending_mb`` (the oldest is dropped first, ``memory_limit``);
 two different images for one corner, side and stamp make that corner invalid
-(``conflicting_images``, see :mod:`cwfs_ros.runtime.visits`). Rejections are logged at most once per ``log_throttle_s`` per
-reason, and all of them counted.
+(``conflicting_images``, see :mod:`cwfs_ros.runtime.visits`). Rejections are logged at most
+once per ``log_throttle_s`` per reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
