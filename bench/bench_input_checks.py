@@ -15,7 +15,8 @@ sky subtracted (float) or raw counts rounded into uint16 (integer).
   wrap        the decoder's wrap test at the converter's depth (runtime/images.py): genuine
               raw counts of a 10-, 12-, 14- or 16-bit ADC in 16UC1 (bias 1-10 % of the range,
               peak at 50-99 % of it): refused? (false positives); the same counts 1.05-3x
-              past the range, wrapped: refused as wrapped? and clipped: refused as what?
+              past the range, wrapped (with the bias and without one): refused as wrapped?
+              and clipped: refused as what, by the decoder and then by the estimator?
 
 Usage: .venv/bin/python bench/bench_input_checks.py [saturation] [swap] [wrap] [--seeds N]
        [--perturbations K] [--rays R]
