@@ -12,8 +12,13 @@ sky subtracted (float) or raw counts rounded into uint16 (integer).
               level given and not): rejected?  Also the ZEMAX/FAM test images.
   swap        correct pairs at the four corners: rejected as swapped? (false positives);
               the same pairs exchanged: rejected? (detection); and a field-radius scan.
+  wrap        the decoder's wrap test at the converter's depth (runtime/images.py): genuine
+              raw counts of a 10-, 12-, 14- or 16-bit ADC in 16UC1 (bias 1-10 % of the range,
+              peak at 50-99 % of it): refused? (false positives); the same counts 1.05-3x
+              past the range, wrapped (with the bias and without one): refused as wrapped?
+              and clipped: refused as what, by the decoder and then by the estimator?
 
-Usage: .venv/bin/python bench/bench_input_checks.py [saturation] [swap] [--seeds N]
+Usage: .venv/bin/python bench/bench_input_checks.py [saturation] [swap] [wrap] [--seeds N]
        [--perturbations K] [--rays R]
 """
 
@@ -176,6 +181,76 @@ def bench_saturation(pairs: list[dict], seeds: int, rng: np.random.Generator) ->
         print(f"  {key[0]:34s} {key[1]:13s}: {det[key][0]}/{det[key][1]}")
 
 
+def decode_reason(counts: np.ndarray) -> str:
+    """'' if the decoder takes raw 16UC1 counts, else its reason."""
+    from cwfs_ros.runtime.images import ImageDecodeError, decode_checked
+
+    x = np.ascontiguousarray(counts, dtype="<u2")
+    try:
+        decode_checked(x.tobytes(), height=x.shape[0], width=x.shape[1], encoding="16UC1",
+                       step=2 * x.shape[1])
+    except ImageDecodeError as exc:
+        return exc.reason
+    return ""
+
+
+def bench_wrap(pairs: list[dict], seeds: int, rng: np.random.Generator) -> None:
+    print("\n== wrap at the converter's depth: raw counts of a k-bit ADC in 16UC1, Poisson "
+          "(peak photons at the given fraction of the range), bias + read noise 5 ADU")
+    genuine = defaultdict(lambda: defaultdict(int))
+    damaged = defaultdict(lambda: defaultdict(int))
+
+    def raw(shape: np.ndarray, peak: float, bias: float) -> np.ndarray:
+        return np.round(rng.poisson(shape * peak) + bias + rng.normal(0, 5, shape.shape))
+
+    for p in pairs:
+        for side in ("intra", "extra"):
+            shape = p[side] / p[side].max()
+            for bits in (10, 12, 14, 16):
+                top = float(2 ** bits)
+                for _ in range(seeds):
+                    bias = rng.uniform(0.01, 0.10) * top
+                    counts = np.clip(raw(shape, rng.uniform(0.5, 0.99) * top - bias, bias),
+                                     0, top - 1)
+                    genuine[bits][decode_reason(counts) or "taken"] += 1
+                    past = raw(shape, rng.uniform(1.05, 3.0) * top - bias, bias)
+                    damaged[(bits, "wrapped")][decode_reason(np.mod(past, top)) or "taken"] += 1
+                    damaged[(bits, "clipped")][
+                        decode_reason(np.clip(past, 0, top - 1)) or "taken"] += 1
+                    # No bias: the background within its noise of 0 (the wrap test at the
+                    # converter's depth abstains; the type's own range is still judged).
+                    past0 = np.clip(raw(shape, rng.uniform(1.05, 3.0) * top, 0.0), 0, None)
+                    damaged[(bits, "wrapped, no bias")][
+                        decode_reason(np.mod(past0, top)) or "taken"] += 1
+    for bits in sorted(genuine):
+        print(f"  genuine {bits:2d}-bit counts: {dict(genuine[bits])}")
+    for key in sorted(damaged):
+        print(f"  {key[0]:2d}-bit counts 1.05-3x past the range, {key[1]}: "
+              f"{dict(damaged[key])}")
+    # What the estimator makes of the pairs the decoder takes: clipped (its plateau test)
+    # and wrapped without a bias.
+    est = defaultdict(lambda: defaultdict(int))
+    for p in pairs:
+        for bits in (10, 12, 14):
+            top = float(2 ** bits)
+            for kind in ("clipped", "wrapped, no bias"):
+                imgs = []
+                for side in ("intra", "extra"):
+                    shape = p[side] / p[side].max()
+                    over = rng.uniform(1.05, 3.0) * top
+                    if kind == "clipped":
+                        bias = rng.uniform(0.01, 0.10) * top
+                        imgs.append(np.clip(raw(shape, over - bias, bias), 0, top - 1))
+                    else:
+                        imgs.append(np.mod(np.clip(raw(shape, over, 0.0), 0, None), top))
+                if any(decode_reason(im) for im in imgs):
+                    continue
+                est[(bits, kind)][outcome(imgs[0], imgs[1], p["fi"], p["fe"]) or "valid"] += 1
+    for key in sorted(est):
+        print(f"  estimator on the {key[0]:2d}-bit {key[1]} pairs the decoder takes: "
+              f"{dict(est[key])}")
+
+
 def scores(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple) -> np.ndarray:
     """(vignetting, footprint) preferences of the swap check for a pair (as the estimator)."""
     from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry
@@ -251,6 +326,8 @@ def main() -> None:
                         (-r / np.sqrt(2), r / np.sqrt(2))) for r in (0.0, 0.8, 1.0, 1.2, 1.4)]
         scan = traced_pairs(tels[:3], scan_fields, a.rays, rng)
         bench_swap(pairs, scan, a.seeds, rng)
+    if "wrap" in a.sections:
+        bench_wrap(pairs, a.seeds * 6, rng)
     print(f"(total {time.perf_counter() - t0:.0f} s)")
 
 

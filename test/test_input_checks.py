@@ -212,6 +212,19 @@ def test_swapped_pairs_at_the_corners_are_rejected(corner: str) -> None:
         assert pref is not None and float(pref.group(1)) < -0.5
 
 
+@pytest.mark.parametrize(("corner", "opposite"), [("R00", "R44"), ("R04", "R40")])
+def test_the_opposite_corners_images_are_refused_as_swapped_naming_that_cause(
+        corner: str, opposite: str) -> None:
+    """The diagonally opposite corner's images are this corner's turned by 180 degrees,
+    which the swap check cannot tell from an exchanged pair: its message names the cause."""
+    e_in, e_ex = _expected(opposite, True)
+    rng = np.random.default_rng(6)
+    intra, extra = _noisy(e_in, 1e6, 10.0, rng), _noisy(e_ex, 1e6, 10.0, rng)
+    with pytest.raises(SwappedImagesError) as err:
+        _estimate(intra, extra, corner=corner)
+    assert "diagonally opposite corner" in str(err.value)
+
+
 def test_correct_pairs_are_accepted_at_every_corner() -> None:
     """The false-positive side, over corners, both telescopes, photon counts and seeds."""
     rng = np.random.default_rng(6)

@@ -202,7 +202,8 @@ def test_images_never_taken_are_counted(graph):
     from conftest import wait_for
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    wf, tester, _, _, _ = graph(max_pending_mb=4096.0, visit_timeout_s=60.0)
+    wf, tester, camera, _, _ = graph(max_pending_mb=4096.0, visit_timeout_s=60.0)
+    tester.destroy_publisher(camera["intra"])  # one publisher per image topic
     pub = tester.create_publisher(Image, "aos/wfs/R00/intra/image", QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.VOLATILE))

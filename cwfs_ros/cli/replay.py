@@ -264,10 +264,13 @@ class _Pipeline:
         refused = self.wf.refusal(msg, corner, side, clock_ns)
         if refused is not None:
             self.rejections.append(refused.message)
-            return
-        rec, bad = self.wf.record(msg, corner, side, now_s)
-        if bad is not None:
-            self.rejections.append(bad.message)
+            rec = self.wf.refused_record(refused, now_s)  # pairs, naming its reason
+            if rec is None:
+                return
+        else:
+            rec, bad = self.wf.record(msg, corner, side, now_s)
+            if bad is not None:
+                self.rejections.append(bad.message)
         step = self.wf.add_record(rec)
         for r in step.dropped:
             self._unpaired(r)

@@ -263,28 +263,58 @@ class SequenceGaps:
     A RELIABLE KEEP_LAST reader whose queue overflows drops the oldest samples without any
     ``message_lost`` event (FastDDS reports none for them); each message's
     ``publication_sequence_number`` (rclpy's message info) still counts every sample its
-    writer sent, so a forward jump of more than one is that many messages dropped. Exact
-    with one publisher on the topic; with several (reported as other publishers), their
-    interleaved numbers make it an estimate, said so on /diagnostics. Counted from the first
-    message taken: a reader that joins late sees a writer's numbers from where it is.
+    writer sent, so a forward jump of more than one is that many messages dropped. Counted
+    from the first message taken: a reader that joins late sees a writer's numbers from
+    where it is.
+
+    The numbers are per writer, and rclpy's message info names no writer (no publisher gid:
+    only the sequence numbers and timestamps). With one publisher matched the count is
+    exact. A caller that passes the number of publishers matched (``publishers``, e.g.
+    ``Subscription.get_publisher_count()``) gets an honest lower bound with several: a
+    message taken while more than one is matched is not compared with any other (its
+    number may be another writer's), and the next comparison starts afresh once one
+    publisher is left; :attr:`unchecked` counts those messages and :attr:`exact` says
+    whether there were any. Without ``publishers`` (None) every jump is counted, an
+    estimate when several publishers share the topic.
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._last: int | None = None
         self.dropped = 0
+        self.unchecked = 0
+        self.max_publishers = 0
 
-    def note(self, info: Any) -> int:
+    def note(self, info: Any, publishers: int | None = None) -> int:
         """Account one taken message; return how many were dropped just before it."""
         try:
             seq = int(info["publication_sequence_number"])
         except (TypeError, KeyError, ValueError):
             return 0
         with self._lock:
+            if publishers is not None:
+                self.max_publishers = max(self.max_publishers, int(publishers))
+                if publishers > 1:
+                    self._last = None
+                    self.unchecked += 1
+                    return 0
             last, self._last = self._last, seq
             gap = seq - last - 1 if last is not None and seq > last + 1 else 0
             self.dropped += gap
             return gap
+
+    @property
+    def exact(self) -> bool:
+        """Whether every message taken was compared (one publisher matched throughout)."""
+        return self.unchecked == 0
+
+    def describe(self) -> str:
+        """The count for /diagnostics, saying when it is only a lower bound."""
+        if self.exact:
+            return str(self.dropped)
+        return (f"at least {self.dropped} ({self.unchecked} message(s) taken while up to "
+                f"{self.max_publishers} publishers were matched are not counted: sequence "
+                "numbers are per publisher and rclpy names none)")
 
 
 def diagnostic_status(name: str, level: bytes, message: str,

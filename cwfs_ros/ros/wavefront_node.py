@@ -16,13 +16,16 @@ out  ``/aos/wfs/wavefront``              cwfs_msgs/WavefrontVector, when the fou
 out  ``/diagnostics``                    state, counts of rejected inputs and the last reason,
      pending memory, messages lost, and any other publisher on the topics this node owns.
 
-Input guards (docs/reliability.md): an image stamped more than ``max_future_s`` ahead of the
-node's clock, or whose ``header.frame_id`` names another corner or side than its topic's, is
-refused (``future_stamp``, ``frame_mismatch``); images waiting for their partners hold at most
-``max_pending_mb`` (the oldest is dropped first, ``memory_limit``); two different images for
-one corner, side and stamp make that corner invalid (``conflicting_images``, see
-:mod:`cwfs_ros.runtime.visits`). Rejections are logged at most once per ``log_throttle_s`` per
-reason, and all of them counted.
+Input guards (docs/reliability.md): an image stamped 0, or more than ``max_future_s`` ahead
+of the node's clock, whose pair could not fit within ``max_pending_mb``, or whose
+``header.frame_id`` names another corner or side than its topic's, is refused (``no_stamp``,
+``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic while
+more than ``max_image_publishers`` publishers are matched on it (``untrusted_source``; every
+image topic with several publishers is named on /diagnostics); images waiting for their
+partners hold at most ``max_pending_mb`` (the oldest is dropped first, ``memory_limit``);
+two different images for one corner, side and stamp make that corner invalid
+(``conflicting_images``, see :mod:`cwfs_ros.runtime.visits`). Rejections are logged at most
+once per ``log_throttle_s`` per reason, and all of them counted.
 
 Every output carries the visit's image ``header.stamp``. The estimates run in worker processes
 (:class:`cwfs_ros.runtime.corner_pool.CornerPool`), one corner per worker, warmed up at start.
@@ -125,6 +128,7 @@ class WavefrontNode(ManagedNode):
         self._lock = threading.RLock()
         self.pool: CornerPool | None = None
         self._subs: list = []
+        self._image_subs: dict = {}  # (corner, side) -> its image subscription
         self.pub_corner: dict = {}
         self.pub_vector = None
         self._expiry_timer = None
@@ -162,6 +166,9 @@ class WavefrontNode(ManagedNode):
         self.foreign: list[str] = []
         # Images never taken (the queue overflowed), per topic, from sequence numbers.
         self.image_gaps = {(c, s): SequenceGaps() for c in self.corners for s in SIDES}
+        # The publishers of each image topic from the ROS graph (refreshed with /diagnostics,
+        # and when an image comes while more than one is matched).
+        self.image_publishers: dict[tuple[str, str], list[str]] = {}
 
         img_qos = image_qos(str(p("image_reliability")))  # raises before any worker starts
         # Worker processes, warmed up in the background.
@@ -216,16 +223,19 @@ class WavefrontNode(ManagedNode):
                                                            OUTPUT_QOS)
                            if self.assemble else None)
         self._subs = []
+        self._image_subs = {}
         self.qos_events = QosEventMonitor(self.get_logger())
         for c in self.corners:
             for s in SIDES:
                 topic = image_topic(c, s)
                 cb = self._image_callback(c, s)
                 # Two arguments: rclpy passes the message info (its sequence numbers).
-                self._subs.append(self.create_subscription(
+                sub = self.create_subscription(
                     Image, topic, lambda msg, info, cb=cb: cb(msg, info), img_qos,
                     callback_group=self._cb_images,
-                    event_callbacks=self.qos_events.subscription_callbacks(topic)))
+                    event_callbacks=self.qos_events.subscription_callbacks(topic))
+                self._subs.append(sub)
+                self._image_subs[(c, s)] = sub
         if self.assemble:
             for c in CORNERS:
                 if c not in self.corners:
@@ -240,6 +250,7 @@ class WavefrontNode(ManagedNode):
         for sub in self._subs:
             self.destroy_subscription(sub)
         self._subs = []
+        self._image_subs = {}
         if self._expiry_timer is not None:
             self.destroy_timer(self._expiry_timer)
             self._expiry_timer = None
@@ -358,7 +369,18 @@ class WavefrontNode(ManagedNode):
             fp_range=(1.0, 65536.0)))
         d("max_future_s", describe(
             "Refuse an image stamped more than this ahead of the node's clock [s] "
-            "(future_stamp); 0 = no limit.", fp_range=(0.0, 1e6)))
+            "(future_stamp); 0 = no limit. An image is stamped at its exposure and arrives "
+            "after it (readout: 2 s for LSSTCam), so only the offset between the camera's "
+            "clock and this host's puts it ahead: below 1 ms with PTP, a few ms with NTP on "
+            "a LAN (100 ms at worst). 1 s leaves a margin of 10x the worst NTP offset and "
+            "refuses any clock that is wrong by more.", fp_range=(0.0, 1e6)))
+        d("max_image_publishers", describe(
+            "Refuse the images of an image topic while more than this many publishers are "
+            "matched on it (untrusted_source); 0 = no limit. One camera publishes each "
+            "topic: a second publisher (an impostor, a stray bag replay) can mix its "
+            "exposures into a visit, which no check of the pixels can tell. Every topic "
+            "with more than one publisher is named on /diagnostics (WARN) either way.",
+            read_only=True, int_range=(0, 64)))
         d("log_throttle_s", describe(
             "At most one log line per rejection reason per this period [s]; every rejection "
             "is counted on /diagnostics; 0 = a line each.", fp_range=(0.0, 3600.0)))
@@ -464,10 +486,17 @@ class WavefrontNode(ManagedNode):
                 w.get("ok") for w in self._warm.values())
 
     # ------------------------------------------------------------------ images
+    def _publisher_count(self, corner: str, side: str) -> int | None:
+        """Publishers matched on the image topic (the subscription's own count: no graph
+        query), or None without a subscription."""
+        sub = self._image_subs.get((corner, side))
+        return None if sub is None else int(sub.get_publisher_count())
+
     def _image_callback(self, corner: str, side: str):
         def cb(msg: Image, info=None) -> None:
             try:
-                gap = self.image_gaps[(corner, side)].note(info) if info is not None else 0
+                gap = (self.image_gaps[(corner, side)].note(
+                    info, self._publisher_count(corner, side)) if info is not None else 0)
                 if gap:
                     self._reject(Rejection(
                         "queue_dropped", f"{gap} {side} image(s) of {corner} never taken: "
@@ -491,14 +520,19 @@ class WavefrontNode(ManagedNode):
 
     def _on_image(self, msg: Image, corner: str, side: str) -> None:
         """An image through the pipeline's guards, decoding and pairing; a pair to its job."""
-        refused = self.pipeline.refusal(msg, corner, side, self.get_clock().now().nanoseconds)
+        refused = (self.pipeline.refusal(msg, corner, side, self.get_clock().now().nanoseconds)
+                   or self._source_refusal(msg, corner, side))
         if refused is not None:
             self._reject(refused, warn=True)
-            return
-        # Decoded outside the lock: a frame takes a while, and the timers wait on the lock.
-        rec, bad = self.pipeline.record(msg, corner, side, time.monotonic())
-        if bad is not None:
-            self._reject(bad, warn=True)
+            # Refused for what it is, it still pairs: its corner's result names the reason.
+            rec = self.pipeline.refused_record(refused, time.monotonic())
+            if rec is None:
+                return
+        else:
+            # Decoded outside the lock: a frame takes a while, and the timers wait on the lock.
+            rec, bad = self.pipeline.record(msg, corner, side, time.monotonic())
+            if bad is not None:
+                self._reject(bad, warn=True)
         with self._lock:
             self.stats["images"] += 1
             step = self.pipeline.add_record(rec)
@@ -510,6 +544,40 @@ class WavefrontNode(ManagedNode):
                 self._on_conflict(step.rejection)
         if step.pair is not None:
             self._process_pair(step.pair)
+
+    def _source_refusal(self, msg: Image, corner: str, side: str) -> Rejection | None:
+        """``untrusted_source`` while more than ``max_image_publishers`` publishers are
+        matched on the image's topic (0 = no limit), naming them (docs/reliability.md, Who
+        may act). The count is the subscription's (cheap, per image); the names are
+        queried from the graph only then."""
+        limit = int(self._param("max_image_publishers"))
+        n = self._publisher_count(corner, side)
+        if limit <= 0 or n is None or n <= limit:
+            return None
+        names = self._refresh_image_publishers().get((corner, side), [])
+        return Rejection("untrusted_source", f"{side} image of {corner}: {n} publishers are "
+                         f"matched on {image_topic(corner, side)} "
+                         f"({', '.join(names) or 'names not yet in the graph'}), more than "
+                         f"max_image_publishers {limit}: which camera took it cannot be told",
+                         corner, side, stamp_to_ns(msg.header.stamp))
+
+    def _refresh_image_publishers(self) -> dict[tuple[str, str], list[str]]:
+        """The publishers of each served image topic, from the ROS graph (~0.1 ms a topic):
+        ``namespace/node`` names, with the endpoint gid's last 4 bytes when two share a name."""
+        out: dict[tuple[str, str], list[str]] = {}
+        for c, s in list(self._image_subs):
+            try:
+                infos = self.get_publishers_info_by_topic(
+                    self.resolve_topic_name(image_topic(c, s)))
+            except Exception:  # noqa: BLE001 - a graph query must not break an image
+                continue
+            names = [f"{str(i.node_namespace).rstrip('/')}/{i.node_name}" for i in infos]
+            out[(c, s)] = [n if names.count(n) == 1 else
+                           f"{n} (gid {bytes(i.endpoint_gid).hex()[-8:]})"
+                           for n, i in zip(names, infos, strict=True)]
+        with self._lock:
+            self.image_publishers = out
+        return out
 
     def _on_conflict(self, rej: Rejection) -> None:
         """Two different images for one corner, side and stamp: the corner's visit is
@@ -746,7 +814,8 @@ class WavefrontNode(ManagedNode):
             promise, promise_s = self.workload.promise(
                 pool.affinity, pool.queued(), float(self._param("visit_timeout_s")))
         self.foreign = foreign_publishers(self, self._owned_topics())
-        level, state, message = self._health(warm, lifecycle, incomplete, promise)
+        shared = {k: v for k, v in self._refresh_image_publishers().items() if len(v) > 1}
+        level, state, message = self._health(warm, lifecycle, incomplete, promise, shared)
         values = [("state", state), ("lifecycle", lifecycle),
                   ("corners", " ".join(self.corners)),
                   ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
@@ -755,8 +824,10 @@ class WavefrontNode(ManagedNode):
                   ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
                   ("max_pending_mb", self._param("max_pending_mb")),
                   ("foreign_publishers", "; ".join(self.foreign) or "none")]
-        values += [(f"queue_dropped.{c}.{s}", str(g.dropped))
-                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped]
+        values += [(f"queue_dropped.{c}.{s}", g.describe())
+                   for (c, s), g in sorted(self.image_gaps.items()) if g.dropped or not g.exact]
+        values += [(f"publishers.{c}.{s}", f"{len(v)}: {', '.join(v)}")
+                   for (c, s), v in sorted(shared.items())]
         values += [(f"compute_ms.{c}", f"{v:.1f}") for c, v in sorted(compute.items())]
         values += self._workload_values(pool, promise_s)
         values += [(f"status.{c}", v) for c, v in sorted(last.items())]
@@ -785,8 +856,11 @@ class WavefrontNode(ManagedNode):
 
     def _health(self, warm: dict[str, dict], lifecycle: str,
                 incomplete: tuple[float, str] | None,
-                promise: Problem | None = None) -> tuple[bytes, str, str]:
-        """(level, state, message) of /diagnostics: the worst condition first."""
+                promise: Problem | None = None,
+                shared: dict[tuple[str, str], list[str]] | None = None
+                ) -> tuple[bytes, str, str]:
+        """(level, state, message) of /diagnostics: the worst condition first. ``shared``:
+        image topics with more than one publisher, and who they are."""
         failed = [w for w in warm.values() if not w.get("ok")]
         if failed:
             level, state = ERROR, "error"
@@ -801,6 +875,13 @@ class WavefrontNode(ManagedNode):
         elif self.qos_events.problem() is not None:
             level, state = ERROR, "ready"
             message = f"QoS: {self.qos_events.problem()}"
+        elif shared:
+            (c, s), names = sorted(shared.items())[0]
+            what = ("its images are refused (untrusted_source)"
+                    if int(self._param("max_image_publishers")) > 0 else "its images are taken")
+            level, state = WARN, "ready"
+            message = (f"ready; {len(names)} publishers on the {image_topic(c, s)} image topic "
+                       f"({', '.join(names)}): {what}")
         elif self.foreign:
             level, state = WARN, "ready"
             message = f"ready; another publisher on a topic of this node: {self.foreign[0]}"

@@ -25,6 +25,8 @@ __all__ = [
     "ENCODINGS",
     "ImageDecodeError",
     "decode_checked",
+    "adc_depth",
+    "background_floor",
     "decode_image",
     "inspect_pixels",
 ]
@@ -131,6 +133,30 @@ SCALE_RANGE = (1e-150, 1e150)
 # next to the bias is not a wrap.
 WRAP_BAND = 0.25
 WRAP_MIN_PIXELS = 3
+# Converters narrower than the type (a 12-bit ADC in 16UC1 wraps at 4096) are judged at the
+# smallest depth that holds the data, from MIN_ADC_BITS: below it too few levels tell a wrap
+# from a sharp donut edge, as for 8-bit types.
+MIN_ADC_BITS = 10
+# At that depth a genuine donut's edge can step from the bias to the top quarter in one pixel
+# (the data fill 50-100 % of the range by construction), so a wrap must also show what no
+# genuine pixel does: light pixels wrapped below the background, more than FLOOR_SIGMAS
+# times its noise (median and MAD of the image's outer BORDER_PX frame); or, without a bias
+# to fall below, at least WRAP_MIN_PIXELS bottom-quarter pixels buried in the light, all 4
+# of their neighbours in the top quarter (an edge, even a pixel-sharp one of a convex
+# donut or hole, leaves at most 3).
+FLOOR_SIGMAS = 6.0
+BORDER_PX = 4
+# A clip, not a wrap: a clipped donut on a zero background drops from its plateau to 0 in
+# one pixel as a wrap does, but its light holds a plateau of pixels at exactly the image
+# maximum; a wrap leaves the light noisy just below the wrap point, where the maximum holds
+# about as many pixels as the levels just under it. At least CLIP_MIN_PIXELS pixels at the
+# maximum, CLIP_PLATEAU_FRACTION of the number of high step pixels, and CLIP_PEAK_RATIO
+# times the mean count of the CLIP_LEVELS levels under it (a spike in the histogram) say
+# clipped.
+CLIP_MIN_PIXELS = 8
+CLIP_PLATEAU_FRACTION = 0.1
+CLIP_PEAK_RATIO = 4.0
+CLIP_LEVELS = 3
 
 
 def inspect_pixels(image: np.ndarray, encoding: str) -> None:
@@ -153,7 +179,13 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
             quarter (at least :data:`WRAP_MIN_PIXELS` pixels each side), or a pixel in the
             bottom quarter with 2 or more of its 4 neighbours in the top one (a pixel or
             two wrapped inside the light). 16- and 32-bit integers only: 8 bits hold too
-            few levels to tell a wrap from a sharp donut edge.
+            few levels to tell a wrap from a sharp donut edge. The same at the depth of a
+            narrower converter that holds the data (:func:`adc_depth`: a 12-bit ADC wraps
+            at 4096), where the bottom-quarter pixels must also lie below the background
+            (:func:`background_floor`), or be buried in the light (all 4 neighbours in
+            the top quarter, :data:`WRAP_MIN_PIXELS` of them).
+            When the steps are found but the light holds a plateau at the image maximum
+            (:data:`CLIP_MIN_PIXELS` ...), the image was clipped: ``saturated``.
         ``bad_scale``: float pixels whose largest magnitude is outside :data:`SCALE_RANGE`.
     """
     base = np.dtype(ENCODINGS[encoding])
@@ -168,7 +200,13 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
         # pixel exactly at full scale by chance only: the wrap test comes before the one
         # or two of those.
         if base.itemsize >= 2 and n_top < WRAP_MIN_PIXELS:
-            _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1)
+            bounds = (float(np.min(image)), float(np.max(image)))
+            _check_wrap(image, encoding, float(info.min), float(info.max) - float(info.min) + 1,
+                        peak=bounds[1])
+            depth = adc_depth(bounds, base)
+            if depth is not None:
+                _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth),
+                            background_floor(image), peak=bounds[1])
         if n_top:
             raise ImageDecodeError(
                 "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
@@ -269,33 +307,99 @@ def _check_byte_order(image: np.ndarray, swapped: np.ndarray, base: np.dtype) ->
             "fix is_bigendian")
 
 
-def _check_wrap(image: np.ndarray, encoding: str, lo: float, span: float) -> None:
-    u = (image - lo) / span  # position in the type's range, 0..1
-    low = u < WRAP_BAND
-    high = u >= 1.0 - WRAP_BAND
-    if not (low.any() and high.any()):
-        return
-    high_nb, low_nb = _neighbours(high), _neighbours(low)
-    low_step = int(np.count_nonzero(low & (high_nb > 0)))
-    high_step = int(np.count_nonzero(high & (low_nb > 0)))
+def adc_depth(bounds: tuple[float, float], base: np.dtype) -> int | None:
+    """Bits of the narrowest converter that holds the data, when narrower than the type.
+
+    A 12-bit ADC's counts stored in 16UC1 never exceed 4095, and a wrap there goes from 4095
+    to 0, far below the type's range. ``bounds``: the image's (smallest, largest) value. The
+    depth is that of the largest value (values >= 0 only: a signed image holding negative
+    counts is no unsigned converter's); None below :data:`MIN_ADC_BITS` or when it is the
+    type's own range (judged as such already).
+    """
+    low, peak = bounds
+    if not (np.isfinite(low) and np.isfinite(peak)) or low < 0:
+        return None
+    depth = int(peak).bit_length()
+    value_bits = 8 * base.itemsize - (1 if base.kind == "i" else 0)
+    return depth if MIN_ADC_BITS <= depth < value_bits else None
+
+
+def background_floor(image: np.ndarray) -> float:
+    """The level below which no genuine pixel lies: the background (median of the outer
+    :data:`BORDER_PX` frame) less :data:`FLOOR_SIGMAS` times its noise (1.4826 MAD, at
+    least 1 count)."""
+    h, w = image.shape
+    b = min(BORDER_PX, h // 4, w // 4)
+    if b < 1:
+        return 0.0
+    border = np.concatenate([image[:b].ravel(), image[-b:].ravel(), image[b:-b, :b].ravel(),
+                             image[b:-b, -b:].ravel()])
+    med = float(np.median(border))
+    sigma = max(1.4826 * float(np.median(np.abs(border - med))), 1.0)
+    return med - FLOOR_SIGMAS * sigma
+
+
+def _step_counts(image: np.ndarray, low_below: float, high_from: float,
+                 floor: float) -> tuple[int, int, int, int]:
+    """Around the pixels at or above ``high_from`` (the top band; few in a donut image, so
+    only they and their 4 neighbours are visited): (low pixels below ``min(low_below,
+    floor)`` next to them, top-band pixels next to such a low one, such low pixels with 2 or
+    more top-band neighbours, pixels below ``low_below`` with all 4 neighbours in the top
+    band)."""
+    hr, hc = np.nonzero(image >= high_from)
+    if hr.size == 0:
+        return 0, 0, 0, 0
+    h, w = image.shape
+    near_low = np.zeros(hr.size, dtype=bool)
+    band, below = [], []  # flat indices of low neighbours, once per top-band neighbour
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r, c = hr + dr, hc + dc
+        ok = np.flatnonzero((r >= 0) & (r < h) & (c >= 0) & (c < w))
+        v = image[r[ok], c[ok]]
+        in_band = v < low_below
+        band.append((r[ok] * w + c[ok])[in_band])
+        low = in_band & (v < floor)
+        below.append((r[ok] * w + c[ok])[low])
+        near_low[ok[low]] = True
+    _, n_band = np.unique(np.concatenate(band), return_counts=True)
+    _, n_below = np.unique(np.concatenate(below), return_counts=True)
+    return (int(n_below.size), int(np.count_nonzero(near_low)),
+            int(np.count_nonzero(n_below >= 2)), int(np.count_nonzero(n_band == 4)))
+
+
+def _check_wrap(image: np.ndarray, what: str, lo: float, span: float,
+                floor: float | None = None, *, peak: float) -> None:
+    """Raise ``wrapped`` for the steps a wrap at ``lo + span`` leaves (:data:`WRAP_BAND`),
+    or ``saturated`` when their high side is a plateau at the image maximum (a clip).
+    ``floor``: only low pixels below it count (:func:`background_floor`), or, without
+    one, those buried in the top band. ``peak``: the image maximum."""
+    if peak < lo + (1.0 - WRAP_BAND) * span:
+        return  # nothing in the top band
+    low_step, high_step, enclosed, buried = _step_counts(
+        image, lo + WRAP_BAND * span, lo + (1.0 - WRAP_BAND) * span,
+        np.inf if floor is None else floor)
+    if floor is None:
+        buried = 0
     # A pixel or two that wrapped sit inside the light: low, with at least 2 of its 4
     # neighbours high (a hot pixel is the opposite: high among low ones).
-    enclosed = int(np.count_nonzero(low & (high_nb >= 2)))
-    if (low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed:
+    if not ((low_step >= WRAP_MIN_PIXELS and high_step >= WRAP_MIN_PIXELS) or enclosed
+            or buried >= WRAP_MIN_PIXELS):
+        return
+    at_peak = int(np.count_nonzero(image == peak))
+    under = int(np.count_nonzero((image < peak) & (image >= peak - CLIP_LEVELS)))
+    if at_peak >= max(CLIP_MIN_PIXELS, CLIP_PLATEAU_FRACTION * high_step,
+                      CLIP_PEAK_RATIO * under / CLIP_LEVELS):
         raise ImageDecodeError(
-            "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {encoding} "
-            f"range next to {high_step} in its top quarter ({enclosed} surrounded by them): "
-            "counts that wrapped around instead of clipping; clip at the full scale")
-
-
-def _neighbours(mask: np.ndarray) -> np.ndarray:
-    """Number of each pixel's 4 neighbours in ``mask``."""
-    n = np.zeros(mask.shape, dtype=np.int8)
-    n[1:, :] += mask[:-1, :]
-    n[:-1, :] += mask[1:, :]
-    n[:, 1:] += mask[:, :-1]
-    n[:, :-1] += mask[:, 1:]
-    return n
+            "saturated", f"{at_peak} pixel(s) sit at the image maximum {peak:g}, and "
+            f"{high_step} at the top of sharp steps to the bottom of the {what} range: a "
+            "clipped plateau (the converter or the camera's processing saturated), not a wrap")
+    raise ImageDecodeError(
+        "wrapped", f"{low_step} pixel(s) sit in the bottom quarter of the {what} range "
+        f"(0..{span:g} above {lo:g})"
+        + ("" if floor is None else f", below the background ({floor:.0f} at most),")
+        + f" next to {high_step} in its top quarter ({enclosed} surrounded by them"
+        + ("" if floor is None else f"; {buried} buried in it")
+        + "): counts that wrapped around instead of clipping; clip at the full scale")
 
 
 def _as_bytes(data: object) -> np.ndarray:

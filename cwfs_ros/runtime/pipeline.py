@@ -57,6 +57,7 @@ from cwfs_ros.wfs.orientation import Orientation
 from cwfs_ros.wfs.settings import EstimatorSettings, validate_settings
 
 __all__ = [
+    "PAIRED_REFUSALS",
     "SETTINGS_PARAMS",
     "ImageStep",
     "WavefrontPipeline",
@@ -72,6 +73,8 @@ SETTINGS_PARAMS = ("instrument", "band", "solver", "outer_iterations", "pad_px",
                    "seeing_fwhm_arcsec")
 # Conflicts found after pairing that are remembered (oldest forgotten first).
 _MAX_CONFLICTS = 256
+# Refusals at the door whose image still pairs (:meth:`WavefrontPipeline.refused_record`).
+PAIRED_REFUSALS = frozenset({"frame_mismatch", "too_large", "untrusted_source"})
 
 
 def stamp_problem(stamp: Any) -> Problem | None:
@@ -236,23 +239,70 @@ class WavefrontPipeline:
     # ------------------------------------------------------------------ images
     def refusal(self, msg: Any, corner: str, side: str, clock_ns: int) -> Rejection | None:
         """The refusal of an Image message before decoding, or None: a stamp no output could
-        carry (``bad_stamp``), one more than ``max_future_s`` ahead of ``clock_ns``
-        (``future_stamp``; not checked while ``clock_ns`` is 0), a ``frame_id`` naming
-        another corner or side (``frame_mismatch``, :func:`frame_id_problem`)."""
+        carry (``bad_stamp``), a stamp of 0 (``no_stamp``: a camera that never set it; every
+        such image would claim one visit), one more than ``max_future_s`` ahead of
+        ``clock_ns`` (``future_stamp``; not checked while ``clock_ns`` is 0), a pair of such
+        images too large for ``max_pending_mb`` (``too_large``, :meth:`size_problem`: judged
+        on height and width, before the digest and the decoding that would cost seconds and
+        gigabytes), a ``frame_id`` naming another corner or side (``frame_mismatch``,
+        :func:`frame_id_problem`)."""
+        where = f"{side} image of {corner}"
         bad = stamp_problem(msg.header.stamp)
         if bad is not None:
-            return Rejection("bad_stamp", f"{side} image of {corner}: {bad}", corner, side, 0)
+            return Rejection("bad_stamp", f"{where}: {bad}", corner, side, 0)
         t = stamp_to_ns(msg.header.stamp)
+        if t == 0:
+            return Rejection("no_stamp", f"{where}: header.stamp is 0 (never set): an image "
+                             "needs its exposure time to be paired and assembled", corner,
+                             side, 0)
         ahead = float(self._get("max_future_s"))
         if ahead > 0 and clock_ns > 0 and t > clock_ns + ahead * 1e9:
-            return Rejection("future_stamp", f"{side} image of {corner}: stamped "
+            return Rejection("future_stamp", f"{where}: stamped "
                              f"{(t - clock_ns) / 1e9:.4g} s ahead of the clock (max_future_s "
                              f"{ahead:g})", corner, side, t)
+        big = self.size_problem(msg)
+        if big is not None:
+            return Rejection("too_large", f"{where}: {big}", corner, side, t)
         bad_id = frame_id_problem(str(msg.header.frame_id), corner, side)
         if bad_id is not None:
-            return Rejection("frame_mismatch", f"{side} image of {corner}: {bad_id}", corner,
-                             side, t)
+            return Rejection("frame_mismatch", f"{where}: {bad_id}", corner, side, t)
         return None
+
+    def size_problem(self, msg: Any) -> str | None:
+        """Why an image is too large to be taken, from its ``height`` and ``width`` alone, or
+        None: its pair, decoded to float64 (2 x rows x cols x 8 B), must fit within
+        ``max_pending_mb``. One image of the pair waits for the other in that memory, and
+        the pair then goes to a worker; a larger pair could never be estimated, and its
+        decoding alone would take the process gigabytes beyond the limit (an 8192 x 8192
+        image: 537 MB as float64)."""
+        try:
+            rows, cols = int(msg.height), int(msg.width)
+        except (TypeError, ValueError):
+            return None  # the decoder names it
+        image_mb = rows * cols * 8 / 1e6
+        limit_mb = float(self._get("max_pending_mb"))
+        if 2 * image_mb <= limit_mb:
+            return None
+        return (f"{rows} x {cols} px is {image_mb:.0f} MB as float64, a pair "
+                f"{2 * image_mb:.0f} MB, beyond max_pending_mb {limit_mb:g}: refused before "
+                "decoding")
+
+    @staticmethod
+    def refused_record(rej: Rejection, received_s: float) -> ImageRecord | None:
+        """The pairing record of an image refused at the door (:meth:`refusal`), or None.
+
+        An image refused for what it is (:data:`PAIRED_REFUSALS`) still pairs, as an
+        undecodable one does, so that its corner's result names the refusal at once instead
+        of its partner timing out ``unpaired``. Refusals of the stamp itself do not pair:
+        their stamp names no visit (0, malformed) or one far ahead that would close visits
+        still to come.
+        """
+        if rej.reason not in PAIRED_REFUSALS:
+            return None
+        where = f"{rej.side} image of {rej.corner}: "
+        detail = rej.message[len(where):] if rej.message.startswith(where) else rej.message
+        return ImageRecord(rej.corner, rej.side, rej.stamp_ns, error=f"{rej.reason}: {detail}",
+                           reason=rej.reason, received=float(received_s))
 
     @staticmethod
     def record(msg: Any, corner: str, side: str, received_s: float

@@ -80,8 +80,11 @@ class Rejection:
     Attributes:
         reason: short tag for counting (``duplicate``, ``late``, ``unpaired``,
             ``unknown_corner``, ``unknown_side``, ``bad_corner_wavefront``,
-            ``corner_mismatch`` (a remote corner's message naming another corner), or a decoding /
-            estimator tag such as ``unsupported_encoding``).
+            ``corner_mismatch`` (a remote corner's message naming another corner), a refusal
+            before decoding (``bad_stamp``, ``no_stamp``, ``future_stamp``, ``too_large``,
+            ``frame_mismatch``, ``untrusted_source``: :meth:`WavefrontPipeline.refusal
+            <cwfs_ros.runtime.pipeline.WavefrontPipeline.refusal>` and wavefront_node), or a
+            decoding / estimator tag such as ``unsupported_encoding``).
         message: one human-readable sentence.
     """
 

@@ -450,8 +450,10 @@ def check_not_swapped(intra: np.ndarray, extra: np.ndarray,
             "footprint of the other side better than its own (vignetted pupil and design "
             f"aberrations: preference {p_f:+.2f} at {z_f:+.1f} sigma; vignetted part alone: "
             f"{p_v:+.2f} at {z_v:+.1f} sigma; +1 = as given, -1 = exchanged). Check which "
-            "image is intra-focal (negative detector offset), and that neither camera "
-            "delivers its stamps turned by 180 degrees (which looks the same). Past the "
+            "image is intra-focal (negative detector offset), that neither camera "
+            "delivers its stamps turned by 180 degrees, and that the images are this "
+            "corner's: the diagonally opposite corner's (R00 and R44, R04 and R40) are this "
+            "corner's turned by 180 degrees, so all three look alike. Past the "
             "geometric limit of curvature sensing (several um of wavefront at a corner, "
             "validation Fig. 9) the donuts match neither footprint and are refused the same "
             "way")
