@@ -20,7 +20,16 @@ A corner flagged valid whose 19 terms have an rms below ``min_corner_rms_nm`` ca
 measurement (zeros, denormals, 1e-30): every estimate holds the design wavefront and photon
 noise of a nanometre or more.  It is refused too (``no_measurement``); so is a valid corner
 whose producer reports uncertainties and pair counts but gives none for it
-(``no_uncertainty``).
+(``no_uncertainty``), or claims what no estimate has (:class:`Claims`: a per-term one-sigma
+outside the estimator's noise model, more pairs than a corner combines:
+``implausible_uncertainty``), and two valid corners that are one estimate (:class:`CopyRule`:
+closer than photon noise allows; ``copied_corner``).
+
+What the physics cannot refuse: a corner whose terms are all below a nanometre, a corner
+copied into another with a nanometre of noise added, shuffled terms or swapped corner blocks
+are, near the nominal telescope, within the spread that the Kalman filter's consistency test
+(``inconsistent_measurement``) must allow genuine measurements of large aberrations
+(``bench/bench_vector_checks.py tampering``; docs/reliability.md).
 
 The bounds are linear in the matrix: with the bundled matrix (r band) they run from about
 277 um (Z4: M2 and camera piston move focus by microns per micron) down to ~80 nm for

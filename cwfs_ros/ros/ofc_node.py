@@ -32,13 +32,16 @@ beyond ``max_abs_zernike_nm``, one whose stamp is unset, not newer than the last
 ``dry_run`` the correction is computed and published (``dry_run=true``) but the controller
 state does not advance, since the correction is not applied.
 
-Input guards (docs/reliability.md), before the solver: a vector bit-identical to one already
-integrated (``repeated_measurement``) or stamped less than ``min_visit_period_s`` after the
-last integrated visit (``too_soon``) is counted and logged (throttled) but gets no
-DofCorrection, so that a flood is not passed on; a valid corner beyond the physical bounds of
+Input guards (docs/reliability.md), before the solver: a vector with a corner that is a copy
+of the same corner of a recently integrated visit (closer than photon noise allows:
+``repeated_measurement``) or stamped less than ``min_visit_period_s`` after the last
+integrated visit (``too_soon``) is counted and logged (throttled) but gets no DofCorrection,
+so that a flood is not passed on; a valid corner beyond the physical bounds of
 :mod:`cwfs_ros.ofc.plausibility` (``implausible_wavefront``), with no measurement in it
-(``no_measurement``) or without the uncertainty its producer reports for the others
-(``no_uncertainty``) is refused like any other refusal. Vectors the subscription queue
+(``no_measurement``), without the uncertainty its producer reports for the others
+(``no_uncertainty``), claiming an uncertainty or pair count no estimate has
+(``implausible_uncertainty``), or two corners that are one estimate (``copied_corner``) is
+refused like any other refusal. Vectors the subscription queue
 dropped are counted from the publishers' sequence numbers; other publishers on the
 correction topic are named on /diagnostics.
 """
