@@ -683,7 +683,8 @@ def _declare_guard_parameters(d) -> None:
         "one-sigma are one measurement sent twice (repeated visits, copied corners).",
         fp_range=(0.0, 0.5)))
     d("repeat_floor_nm", describe(
-        "... and never closer than this [nm].", fp_range=(0.0, 100.0)))
+        "Two estimates closer than this [nm] (rms over a corner's 19 terms) are one "
+        "measurement whatever their reported one-sigma.", fp_range=(0.0, 100.0)))
     d("min_uncertainty_nm", describe(
         "A valid corner claiming a per-term one-sigma below this [nm] is refused "
         "(implausible_uncertainty): no estimate knows a term that well.",
