@@ -121,3 +121,15 @@ def test_node_refuses_what_no_measurement_is(ros_context, spin):
     kv = {x.key: x.value for x in ofc.diagnostics().values}
     assert kv["guard.repeated_measurement"] == "4" and kv["guard.too_soon"] == "1"
     assert kv["min_visit_period_s"] == "15.0"
+
+
+def test_uncertainty_limits_must_leave_room(ros_context, spin):
+    ofc = spin(OfcNode(context=ros_context))
+    res = ofc.set_parameters_atomically([Parameter("min_uncertainty_nm", value=900.0),
+                                         Parameter("max_uncertainty_nm", value=500.0)])
+    assert not res.successful and "min_uncertainty_nm" in res.reason
+    (res,) = ofc.set_parameters([Parameter("max_uncertainty_nm", value=500.0)])
+    assert res.successful
+    (res,) = ofc.set_parameters([Parameter("min_uncertainty_nm", value=900.0)])
+    assert not res.successful and "below" in res.reason
+    assert ofc.get_parameter("min_uncertainty_nm").value == 0.001

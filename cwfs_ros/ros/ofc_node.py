@@ -292,6 +292,12 @@ class OfcNode(ManagedNode):
             bad = string_param_problem(n, v)
             if bad is not None:
                 return result(False, bad)
+        lo = new.get("min_uncertainty_nm", self._param("min_uncertainty_nm"))
+        hi = new.get("max_uncertainty_nm", self._param("max_uncertainty_nm"))
+        if lo >= hi:
+            return result(False, f"min_uncertainty_nm ({lo:g}) must be below "
+                          f"max_uncertainty_nm ({hi:g}): else every reported one-sigma is "
+                          "refused")
         if not any(n in new for n in _SOLVER_PARAMS):
             return result(True)
 
