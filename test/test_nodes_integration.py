@@ -196,7 +196,11 @@ def test_visit_through_both_nodes(visit, system):
     assert np.all(np.asarray(dc.dof_uncertainty)[:10] > 0)
     assert 0 <= dc.predicted_field_rms_nm < dc.field_rms_nm
 
-    # ---- the same visit with a bad image on R40: no valid correction for that visit
+    # ---- the telescope exposed again with a bad image on R40: no valid correction for that
+    # visit. A new exposure has its own photon noise (the same pixels again would be one
+    # measurement sent twice: ofc_node refuses that silently, as repeated_measurement).
+    rng = np.random.default_rng(2)
+    images = {k: v + rng.poisson(0.5, v.shape) for k, v in images.items()}
     bad = image_msg(images[("R40", "intra")], S2, encoding="32FC1")
     bad.data = bytes(bad.data)[:-100]  # truncated
     t.publish_visit(images, S2, replace={("R40", "intra"): bad})

@@ -172,9 +172,10 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     rng = np.random.default_rng(0)
 
     def send(stamp, z=None, valid=(True,) * 4, corners=("R00", "R04", "R40", "R44")):
-        # Each visit its own measurement (a bit-identical vector is a repeat, refused), the
-        # visits VISIT apart (closer ones are refused as too soon).
-        z = y + rng.normal(0.0, 1e-6, y.shape) if z is None else z
+        # Each visit its own measurement, with a measurement's noise (a vector within photon
+        # noise of one integrated is a repeat, refused), the visits VISIT apart (closer ones
+        # are refused as too soon).
+        z = y + rng.normal(0.0, 1.0, y.shape) if z is None else z
         m = WavefrontVector()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
         m.zernikes_nm = np.asarray(z, dtype=float)
@@ -196,8 +197,9 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
 
     # dry run: computed and flagged, the state does not advance
     assert ofc.set_parameters([Parameter("dry_run", value=True)])[0].successful
-    d3 = send(T + 3 * VISIT)
-    d4 = send(T + 4 * VISIT)
+    z3 = y + rng.normal(0.0, 1.0, y.shape)
+    d3 = send(T + 3 * VISIT, z=z3)
+    d4 = send(T + 4 * VISIT, z=z3 + rng.normal(0.0, 1e-6, y.shape))  # dry runs: not integrated
     assert d3.dry_run and d4.dry_run and d3.valid
     np.testing.assert_allclose(d3.dof, d4.dof, rtol=1e-7, atol=1e-9)  # 1e-6 nm apart
     np.testing.assert_allclose(d4.dof_total, np.asarray(d2.dof_total) + np.asarray(d4.dof))
@@ -206,7 +208,7 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
     # refusals: invalid corner, NaN in a valid corner, bad layout
     bad = send(T + 5 * VISIT, valid=(True, True, False, True))
     assert not bad.valid and bad.status.startswith("corner_invalid") and "R40" in bad.status
-    z = y.copy()
+    z = y + rng.normal(0.0, 1.0, y.shape)  # a new measurement (y itself was visit 1's)
     z[3] = np.nan
     assert send(T + 6 * VISIT, z=z).status.startswith("non_finite")
     lay = send(T + 7 * VISIT, corners=("R04", "R00", "R40", "R44"))

@@ -70,6 +70,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
     # visits 40 s apart (the LSST cadence), all in the past of the node's clock
     t0 = (time.time_ns() // SEC) * SEC - 400 * SEC
     errors: list[float] = []
+    noise = np.random.default_rng(12)
 
     def visit(k: int) -> DofCorrection:
         stamp = t0 + k * 40 * SEC
@@ -77,7 +78,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
         wf = truth.matrix_nm @ telescope
         errors.append(float(np.linalg.norm(wf)))
-        m.zernikes_nm = intrinsic + wf
+        m.zernikes_nm = intrinsic + wf + noise.normal(0.0, 1.0, layout.N_MEAS)  # photon noise
         m.corner_valid = [True] * 4
         m.corners = ["R00", "R04", "R40", "R44"]
         m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)

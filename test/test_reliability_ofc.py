@@ -102,7 +102,8 @@ def test_visit_guard_repeats_and_period():
     assert g.check(T, z, ones).ok
     g.integrated(T, z, ones)
     assert g.check(T + VISIT, z, ones).reason == "repeated_measurement"
-    z2 = z + 1e-9
+    assert g.check(T + VISIT, z + 1e-9, ones).reason == "repeated_measurement"
+    z2 = z + np.random.default_rng(0).normal(0, 5.0, 76)  # a new measurement
     assert g.check(T + 1_000_000, z2, ones).reason == "too_soon"  # 1 ms later
     assert g.check(T + 2 * SEC + 1, z2, ones).ok
 

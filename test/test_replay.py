@@ -44,7 +44,9 @@ ROOT = Path(__file__).resolve().parents[1]
 VISITS = 2
 OVERLAY = {
     "wavefront_node": {"ros__parameters": {"visit_timeout_s": 10.0}},
-    "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0}},
+    # the simulated camera renders a visit per trigger, faster than the survey's cadence
+    # (min_visit_period_s 15 s): the readout's 2 s, as config/sim.yaml sets it
+    "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0, "min_visit_period_s": 2.0}},
     "camera_sim_node": {"ros__parameters": {
         "visit_period_s": 0.0, "n_photons": 2e5, "perturbation_seed": 11,
         "perturbation_scale": 1.0, "render_seed": 5}},

@@ -40,7 +40,9 @@ OVERLAY = {
     # Frames take seconds per corner on a shared 2-core machine: a generous visit timeout,
     # so that the live visits are complete and the comparison is about the numbers.
     "wavefront_node": {"ros__parameters": {"visit_timeout_s": 60.0, "input_mode": "frames"}},
-    "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0}},
+    # the simulated camera renders a visit per trigger, faster than the survey's cadence
+    # (min_visit_period_s 15 s): the readout's 2 s, as config/sim.yaml sets it
+    "ofc_node": {"ros__parameters": {"kp": 0.6, "ki": 0.0, "min_visit_period_s": 2.0}},
     "camera_sim_node": {"ros__parameters": {
         "visit_period_s": 0.0, "frames": True, "frame_rows": 800, "frame_cols": 800,
         "frame_stars_min": 2, "frame_stars_max": 2, "frame_flux_min": 1e5,

@@ -20,7 +20,16 @@ A corner flagged valid whose 19 terms have an rms below ``min_corner_rms_nm`` ca
 measurement (zeros, denormals, 1e-30): every estimate holds the design wavefront and photon
 noise of a nanometre or more.  It is refused too (``no_measurement``); so is a valid corner
 whose producer reports uncertainties and pair counts but gives none for it
-(``no_uncertainty``).
+(``no_uncertainty``), or claims what no estimate has (:class:`Claims`: a per-term one-sigma
+outside the estimator's noise model, more pairs than a corner combines:
+``implausible_uncertainty``), and two valid corners that are one estimate (:class:`CopyRule`:
+closer than photon noise allows; ``copied_corner``).
+
+What the physics cannot refuse: a corner whose terms are all below a nanometre, a corner
+copied into another with a nanometre of noise added, shuffled terms or swapped corner blocks
+are, near the nominal telescope, within the spread that the Kalman filter's consistency test
+(``inconsistent_measurement``) must allow genuine measurements of large aberrations
+(``bench/bench_vector_checks.py tampering``; docs/reliability.md).
 
 The bounds are linear in the matrix: with the bundled matrix (r band) they run from about
 277 um (Z4: M2 and camera piston move focus by microns per micron) down to ~80 nm for
@@ -37,7 +46,8 @@ from cwfs_ros import layout
 from cwfs_ros.layout import CORNERS, N_ZK
 from cwfs_ros.ofc import control as C
 
-__all__ = ["PlausibilityBounds", "Verdict", "VisitGuard", "check_vector", "physical_bounds"]
+__all__ = ["Claims", "CopyRule", "PlausibilityBounds", "Verdict", "VisitGuard", "check_vector",
+           "copied_corners", "physical_bounds"]
 
 
 
@@ -126,7 +136,10 @@ class Verdict:
 
 
 def _corner_problem(k: int, z: np.ndarray, unc: np.ndarray | None, n_pairs: int | None,
-                    bound: np.ndarray, min_rms_nm: float, reports: bool) -> Verdict | None:
+                    bound: np.ndarray, min_rms_nm: float, reports: bool,
+                    claims: Claims) -> Verdict | None:
+    """The first rule corner ``k`` breaks: a measurement at all, its uncertainty and what it
+    claims, then the physical bound (which the claimed uncertainty widens)."""
     sl = slice(k * N_ZK, (k + 1) * N_ZK)
     zc = z[sl]
     name = CORNERS[k]
@@ -147,6 +160,9 @@ def _corner_problem(k: int, z: np.ndarray, unc: np.ndarray | None, n_pairs: int 
         if uc is None or not np.any(np.isfinite(uc) & (uc > 0)):
             return Verdict(False, "no_uncertainty", f"corner {name} is flagged valid without "
                            "an uncertainty, from a producer that reports them")
+    claimed = claims.problem(name, None if unc is None else unc[sl], n_pairs)
+    if claimed is not None:
+        return claimed
     over = np.abs(zc) > bound[sl]
     if np.any(over):
         i = int(np.argmax(np.abs(zc) / bound[sl]))
@@ -161,14 +177,17 @@ def _corner_problem(k: int, z: np.ndarray, unc: np.ndarray | None, n_pairs: int 
 def check_vector(z_nm: np.ndarray, corner_valid: np.ndarray, bounds: PlausibilityBounds, *,
                  uncertainty_nm: np.ndarray | None = None,
                  n_pairs: np.ndarray | None = None, n_sigma: float = 5.0,
-                 min_corner_rms_nm: float = 0.01) -> Verdict:
+                 min_corner_rms_nm: float = 0.01, claims: Claims | None = None,
+                 copies: CopyRule | None = None) -> Verdict:
     """Judge the valid corners of a 76-vector (corner-major, Noll 4..22, nm).
 
     A producer *reports* uncertainties when any of ``uncertainty_nm`` is non-zero or any
     ``n_pairs`` is non-zero (the message's zeros mean "not reported"); then each valid corner
-    must carry both. Invalid corners are not judged (the solver leaves them out or refuses
-    the visit).
+    must carry both, within ``claims``. Two valid corners that are copies of one another
+    (``copies``) are refused as ``copied_corner``. Invalid corners are not judged (the solver
+    leaves them out or refuses the visit).
     """
+    claims = claims if claims is not None else Claims()
     z = np.asarray(z_nm, dtype=np.float64).reshape(-1)
     valid = np.asarray(corner_valid, dtype=bool).reshape(-1)
     unc = None if uncertainty_nm is None else np.asarray(uncertainty_nm, float).reshape(-1)
@@ -186,49 +205,152 @@ def check_vector(z_nm: np.ndarray, corner_valid: np.ndarray, bounds: Plausibilit
         if not valid[k]:
             continue
         v = _corner_problem(k, z, unc, None if pairs is None else int(pairs[k]), bound,
-                            min_corner_rms_nm, reports)
+                            min_corner_rms_nm, reports, claims)
         if v is not None:
             return v
-    return Verdict(True)
+    v = copied_corners(z, valid, copies if copies is not None else CopyRule(), unc)
+    return Verdict(True) if v is None else v
+
+
+@dataclass(frozen=True)
+class Claims:
+    """What one corner measurement may claim about itself.
+
+    An estimate's per-term one-sigma comes from the noise model of the frame combination
+    (``config/selection.yaml``, ``combination``) at its donuts' S/N: at the faintest donut the
+    selection takes (S/N 40) one pair gives at most ~620 nm (``exp``, Z6), a combination whose
+    pairs scatter as much as it accepts (reduced chi-square 4) twice that; at the brightest
+    donut below the full well (~8e8 e-) the smallest term of ``lsq`` is ~0.04 nm. Beyond
+    ``max_uncertainty_nm`` a term carries no measurement (and would widen its plausibility
+    bound by ``n_sigma`` times as much); below ``min_uncertainty_nm`` no estimate knows it. A
+    corner combines at most ``max_pairs`` donut pairs (``max_pairs`` of the selection).
+    """
+
+    min_uncertainty_nm: float = 1e-3
+    max_uncertainty_nm: float = 2000.0
+    max_pairs: int = 4
+
+    def problem(self, name: str, uc: np.ndarray | None, n_pairs: int | None) -> Verdict | None:
+        """Why corner ``name``'s uncertainty (19 terms, 0 = not reported) or pair count is
+        no estimate's, or None."""
+        if n_pairs is not None and n_pairs > self.max_pairs:
+            return Verdict(False, "implausible_uncertainty", f"corner {name} claims {n_pairs} "
+                           f"donut pairs; a corner combines at most {self.max_pairs}")
+        if uc is None:
+            return None
+        given = np.isfinite(uc) & (uc > 0)
+        for bad, what, limit in ((given & (uc > self.max_uncertainty_nm), "above",
+                                  self.max_uncertainty_nm),
+                                 (given & (uc < self.min_uncertainty_nm), "below",
+                                  self.min_uncertainty_nm)):
+            if np.any(bad):
+                i = int(np.flatnonzero(bad)[0])
+                return Verdict(False, "implausible_uncertainty", f"corner {name} claims a "
+                               f"one-sigma of {uc[i]:.3g} nm on Z{i + 4} ({int(bad.sum())} "
+                               f"terms {what} {limit:g} nm): no estimate has it (the noise "
+                               "model of the estimator at the faintest and brightest donuts)")
+        return None
+
+
+@dataclass(frozen=True)
+class CopyRule:
+    """How close two independent estimates of one corner wavefront can be.
+
+    Two estimates (two visits of one telescope state, or two corners of one visit) differ by
+    their photon noise: per term at least ``c_j q`` of the noise model, ~0.1-0.2 nm rms at the
+    brightest donut below the full well, and several nm at 1e6 photons, while the reported
+    one-sigma, which holds the per-pair floor as well, is 1-25 nm per term. Two corner
+    vectors whose rms difference is below ``fraction`` x the reported one-sigma (rms over the
+    19 terms, the smaller of the two; ``default_uncertainty_nm`` when not reported), and
+    never below ``floor_nm``, are one measurement sent twice.
+    """
+
+    fraction: float = 0.002
+    floor_nm: float = 0.01
+    default_uncertainty_nm: float = 15.0
+
+    def sigma_nm(self, uc: np.ndarray | None) -> float:
+        """rms of a corner's reported one-sigma; terms not reported take the default."""
+        if uc is None:
+            return float(self.default_uncertainty_nm)
+        u = np.where(np.isfinite(uc) & (uc > 0), uc, self.default_uncertainty_nm)
+        return float(np.sqrt(np.mean(u * u)))
+
+    def copy(self, za: np.ndarray, ua: np.ndarray | None, zb: np.ndarray,
+             ub: np.ndarray | None) -> tuple[float, float] | None:
+        """(rms difference, threshold) [nm] when ``za`` is a copy of ``zb``, else None."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            d = float(np.sqrt(np.mean((za - zb) ** 2)))
+        thr = max(self.floor_nm, self.fraction * min(self.sigma_nm(ua), self.sigma_nm(ub)))
+        return (d, thr) if d < thr else None
+
+    def describe(self, d: float, thr: float) -> str:
+        return (f"{d:.3g} nm rms apart, less than {thr:.3g} nm ({self.fraction:g} x the "
+                f"reported one-sigma, at least {self.floor_nm:g} nm); two genuine estimates "
+                "differ by their photon noise")
+
+
+def copied_corners(z_nm: np.ndarray, corner_valid: np.ndarray, rule: CopyRule,
+                   uncertainty_nm: np.ndarray | None = None) -> Verdict | None:
+    """Two valid corners of one visit that are one estimate: the corners are four sensors,
+    each with its own photon noise (and, at their four fields, their own design wavefront)."""
+    blocks = _blocks(z_nm, uncertainty_nm)
+    valid = [k for k in range(len(CORNERS)) if corner_valid[k]]
+    for i, a in enumerate(valid):
+        for b in valid[i + 1:]:
+            hit = rule.copy(blocks[a][0], blocks[a][1], blocks[b][0], blocks[b][1])
+            if hit is not None:
+                return Verdict(False, "copied_corner", f"corners {CORNERS[a]} and "
+                               f"{CORNERS[b]} are {rule.describe(*hit)}: one corner's "
+                               "estimate copied into another")
+    return None
+
+
+def _blocks(z_nm: np.ndarray, uncertainty_nm: np.ndarray | None
+            ) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    z = np.asarray(z_nm, dtype=np.float64).reshape(len(CORNERS), N_ZK)
+    u = None if uncertainty_nm is None else \
+        np.asarray(uncertainty_nm, dtype=np.float64).reshape(len(CORNERS), N_ZK)
+    return [(z[k], None if u is None else u[k]) for k in range(len(CORNERS))]
+
+
+@dataclass(frozen=True)
+class _Integrated:
+    stamp_ns: int
+    z_nm: np.ndarray
+    corner_valid: np.ndarray
+    uncertainty_nm: np.ndarray | None
 
 
 class VisitGuard:
     """One measurement, one correction: refuse a visit already integrated, or too soon.
 
-    * ``repeated_measurement``: the vector (its 76 values and 4 flags, bit for bit) equals
-      one integrated before, under whatever stamp: a re-stamped copy. Two genuine estimates
-      are never bit-identical (photon noise).
-    * ``too_soon``: stamped less than ``min_period_s`` after the last visit integrated. No
-      two exposures of the camera can be closer than its 2 s readout, and survey visits are
-      ~30-40 s apart; a burst of vectors closer than that is a flood, not visits.
+    * ``repeated_measurement``: a valid corner of the vector is a copy (:class:`CopyRule`:
+      closer than photon noise allows) of the same corner of one of the last ``history``
+      visits integrated, under whatever stamp: a re-sent measurement, bit for bit or with a
+      jitter far below the noise. Two genuine visits differ by their photon noise.
+    * ``too_soon``: stamped less than ``min_period_s`` after the last visit integrated. No two
+      exposures of the survey are closer than a 15 s snap plus the 2 s readout (visits are
+      ~34-40 s apart); a burst of vectors closer than that is a flood, not visits.
 
-    Older or equal stamps are the solver's business (``stale_visit``). ``history`` bounds
-    the identities remembered.
+    Older or equal stamps are the solver's business (``stale_visit``).
     """
 
-    def __init__(self, min_period_s: float = 2.0, history: int = 64) -> None:
+    def __init__(self, min_period_s: float = 15.0, history: int = 64,
+                 copies: CopyRule | None = None) -> None:
         self.min_period_s = float(min_period_s)
+        self.copies = copies if copies is not None else CopyRule()
         self._history = max(1, int(history))
-        self._seen: dict[bytes, int] = {}
+        self._seen: list[_Integrated] = []
         self.last_stamp_ns: int | None = None
         self.refuse_repeats = True
 
-    @staticmethod
-    def identity(z_nm: np.ndarray, corner_valid: np.ndarray) -> bytes:
-        import hashlib
-
-        h = hashlib.blake2b(digest_size=16)
-        h.update(np.ascontiguousarray(np.asarray(z_nm, dtype=np.float64)).tobytes())
-        h.update(np.asarray(corner_valid, dtype=bool).tobytes())
-        return h.digest()
-
-    def check(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray) -> Verdict:
-        key = self.identity(z_nm, corner_valid)
-        first = self._seen.get(key)
-        if first is not None and self.refuse_repeats:
-            return Verdict(False, "repeated_measurement", f"the vector is bit for bit the one "
-                           f"of visit {first} ns, already integrated: one measurement gives "
-                           "one correction")
+    def check(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray,
+              uncertainty_nm: np.ndarray | None = None) -> Verdict:
+        if self.refuse_repeats:
+            v = self._repeat(z_nm, corner_valid, uncertainty_nm)
+            if v is not None:
+                return v
         last = self.last_stamp_ns
         if last is not None and self.min_period_s > 0 and \
                 0 < stamp_ns - last < self.min_period_s * 1e9:
@@ -237,11 +359,30 @@ class VisitGuard:
                            f"{self.min_period_s:g} s")
         return Verdict(True)
 
-    def integrated(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray) -> None:
+    def _repeat(self, z_nm: np.ndarray, corner_valid: np.ndarray,
+                uncertainty_nm: np.ndarray | None) -> Verdict | None:
+        new = _blocks(z_nm, uncertainty_nm)
+        valid = np.asarray(corner_valid, dtype=bool).reshape(-1)
+        for seen in reversed(self._seen):
+            old = _blocks(seen.z_nm, seen.uncertainty_nm)
+            for k in np.flatnonzero(valid & seen.corner_valid):
+                hit = self.copies.copy(new[k][0], new[k][1], old[k][0], old[k][1])
+                if hit is not None:
+                    return Verdict(False, "repeated_measurement", f"corner {CORNERS[k]} and "
+                                   f"its estimate in visit {seen.stamp_ns} ns, already "
+                                   f"integrated, are {self.copies.describe(*hit)}: one "
+                                   "measurement gives one correction")
+        return None
+
+    def integrated(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray,
+                   uncertainty_nm: np.ndarray | None = None) -> None:
         """Remember a visit whose correction was applied (valid, not a dry run)."""
-        self._seen[self.identity(z_nm, corner_valid)] = int(stamp_ns)
-        while len(self._seen) > self._history:
-            self._seen.pop(next(iter(self._seen)))
+        u = None if uncertainty_nm is None else \
+            np.array(uncertainty_nm, dtype=np.float64).reshape(-1)
+        self._seen.append(_Integrated(int(stamp_ns),
+                                      np.array(z_nm, dtype=np.float64).reshape(-1),
+                                      np.array(corner_valid, dtype=bool).reshape(-1), u))
+        del self._seen[:-self._history]
         self.last_stamp_ns = int(stamp_ns)
 
     def reset(self) -> None:

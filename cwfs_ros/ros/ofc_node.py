@@ -32,13 +32,16 @@ beyond ``max_abs_zernike_nm``, one whose stamp is unset, not newer than the last
 ``dry_run`` the correction is computed and published (``dry_run=true``) but the controller
 state does not advance, since the correction is not applied.
 
-Input guards (docs/reliability.md), before the solver: a vector bit-identical to one already
-integrated (``repeated_measurement``) or stamped less than ``min_visit_period_s`` after the
-last integrated visit (``too_soon``) is counted and logged (throttled) but gets no
-DofCorrection, so that a flood is not passed on; a valid corner beyond the physical bounds of
+Input guards (docs/reliability.md), before the solver: a vector with a corner that is a copy
+of the same corner of a recently integrated visit (closer than photon noise allows:
+``repeated_measurement``) or stamped less than ``min_visit_period_s`` after the last
+integrated visit (``too_soon``) is counted and logged (throttled) but gets no DofCorrection,
+so that a flood is not passed on; a valid corner beyond the physical bounds of
 :mod:`cwfs_ros.ofc.plausibility` (``implausible_wavefront``), with no measurement in it
-(``no_measurement``) or without the uncertainty its producer reports for the others
-(``no_uncertainty``) is refused like any other refusal. Vectors the subscription queue
+(``no_measurement``), without the uncertainty its producer reports for the others
+(``no_uncertainty``), claiming an uncertainty or pair count no estimate has
+(``implausible_uncertainty``), or two corners that are one estimate (``copied_corner``) is
+refused like any other refusal. Vectors the subscription queue
 dropped are counted from the publishers' sequence numbers; other publishers on the
 correction topic are named on /diagnostics.
 """
@@ -289,6 +292,12 @@ class OfcNode(ManagedNode):
             bad = string_param_problem(n, v)
             if bad is not None:
                 return result(False, bad)
+        lo = new.get("min_uncertainty_nm", self._param("min_uncertainty_nm"))
+        hi = new.get("max_uncertainty_nm", self._param("max_uncertainty_nm"))
+        if lo >= hi:
+            return result(False, f"min_uncertainty_nm ({lo:g}) must be below "
+                          f"max_uncertainty_nm ({hi:g}): else every reported one-sigma is "
+                          "refused")
         if not any(n in new for n in _SOLVER_PARAMS):
             return result(True)
 
@@ -324,7 +333,8 @@ class OfcNode(ManagedNode):
         bad = string_param_problem("frame_id", self.frame_id)
         if bad is not None:
             raise ConfigError(f"parameter {bad}")
-        self.guard = P.VisitGuard(self._param("min_visit_period_s"))
+        self.guard = P.VisitGuard(self._param("min_visit_period_s"),
+                                  copies=self._copy_rule())
         self.queue_gaps = SequenceGaps()
         self.guard_counts = RejectionCounter()
         self._bounds: P.PlausibilityBounds | None = None
@@ -371,6 +381,15 @@ class OfcNode(ManagedNode):
             b = self._bounds = P.physical_bounds(band, src, margin)
         return b
 
+    def _copy_rule(self) -> P.CopyRule:
+        return P.CopyRule(float(self._param("repeat_fraction")),
+                          float(self._param("repeat_floor_nm")),
+                          float(self._param("default_uncertainty_nm")))
+
+    def _claims(self) -> P.Claims:
+        return P.Claims(float(self._param("min_uncertainty_nm")),
+                        float(self._param("max_uncertainty_nm")), int(self._param("max_pairs")))
+
     def _guard_vector(self, msg: WavefrontVector, stamp: int) -> tuple[Problem, bool] | None:
         """Why the vector is refused before the solver, or None; with whether to publish the
         refusal (False for a repeat or a visit too soon: answering a flood message by
@@ -378,20 +397,23 @@ class OfcNode(ManagedNode):
         z, valid, problem = vector_from_msg(msg)
         if problem is not None:
             return None  # the solver path names a layout problem
+        unc = np.asarray(msg.uncertainty_nm, dtype=np.float64)
+        copies = self._copy_rule()
         with self._lock:
             self.guard.min_period_s = float(self._param("min_visit_period_s"))
             self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
-            rate = self.guard.check(stamp, z, valid)
+            self.guard.copies = copies
+            rate = self.guard.check(stamp, z, valid, unc)
         if not rate.ok:
             self.guard_counts.add(rate.reason, rate.message)
             self._log_guard(rate.reason, f"visit {stamp}: not integrated, no correction "
                             f"published: {rate.status}")
             return Problem(rate.reason, rate.message), False
-        v = P.check_vector(z, valid, self._plausibility_bounds(),
-                           uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
+        v = P.check_vector(z, valid, self._plausibility_bounds(), uncertainty_nm=unc,
                            n_pairs=np.asarray(list(msg.n_pairs)),
                            n_sigma=float(self._param("plausibility_n_sigma")),
-                           min_corner_rms_nm=float(self._param("min_corner_rms_nm")))
+                           min_corner_rms_nm=float(self._param("min_corner_rms_nm")),
+                           claims=self._claims(), copies=copies)
         return (Problem(v.reason, v.message), True) if not v.ok else None
 
     def _note_integrated(self, msg: WavefrontVector, stamp: int, out: C.OFCResult,
@@ -399,7 +421,8 @@ class OfcNode(ManagedNode):
         if out.valid and not dry:
             z, valid, _ = vector_from_msg(msg)
             with self._lock:
-                self.guard.integrated(stamp, z, valid)
+                self.guard.integrated(stamp, z, valid,
+                                      np.asarray(msg.uncertainty_nm, dtype=np.float64))
 
     def _guard_values(self) -> list[tuple[str, str]]:
         self.foreign = foreign_publishers(self, [CORRECTION_TOPIC])
@@ -654,11 +677,31 @@ def _declare_guard_parameters(d) -> None:
     """The input guards' parameters (docs/reliability.md)."""
     d("min_visit_period_s", describe(
         "Refuse, without a correction, a visit stamped less than this after the last one "
-        "integrated [s]; 0 = off. The camera's 2 s readout keeps any two exposures apart by "
-        "more; survey visits are ~30-40 s apart.", fp_range=(0.0, 3600.0)))
+        "integrated [s]; 0 = off. Survey exposures are at least a 15 s snap plus the 2 s "
+        "readout apart, visits ~34-40 s.", fp_range=(0.0, 3600.0)))
     d("refuse_repeats", describe(
-        "Refuse, without a correction, a vector bit-identical to one already integrated (a "
-        "re-stamped copy); false only for benchmarks that replay one visit's images."))
+        "Refuse, without a correction, a vector with a corner that is a copy of the same "
+        "corner of a recently integrated visit (closer than photon noise allows: "
+        "repeat_fraction, repeat_floor_nm); false only for benchmarks that replay one "
+        "visit's images."))
+    d("repeat_fraction", describe(
+        "Two estimates closer (rms over a corner's 19 terms) than this x their reported "
+        "one-sigma are one measurement sent twice (repeated visits, copied corners).",
+        fp_range=(0.0, 0.5)))
+    d("repeat_floor_nm", describe(
+        "Two estimates closer than this [nm] (rms over a corner's 19 terms) are one "
+        "measurement whatever their reported one-sigma.", fp_range=(0.0, 100.0)))
+    d("min_uncertainty_nm", describe(
+        "A valid corner claiming a per-term one-sigma below this [nm] is refused "
+        "(implausible_uncertainty): no estimate knows a term that well.",
+        fp_range=(0.0, 1e3)))
+    d("max_uncertainty_nm", describe(
+        "A valid corner claiming a per-term one-sigma above this [nm] is refused "
+        "(implausible_uncertainty): it carries no measurement, and would widen its "
+        "plausibility bound by plausibility_n_sigma times as much.", fp_range=(1.0, 1e6)))
+    d("max_pairs", describe(
+        "A valid corner claiming more donut pairs is refused (implausible_uncertainty); "
+        "config/selection.yaml max_pairs.", int_range=(1, 65535)))
     d("plausibility_margin_nm", describe(
         "Added to each term's physical bound (design + most the DoF strokes can add) [nm]: "
         "what the linear 50-DoF model and the estimator leave out.", fp_range=(0.0, 1e6)))

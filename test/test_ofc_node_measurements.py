@@ -1,0 +1,135 @@
+"""ofc_node over DDS: what a measurement may be (docs/reliability.md). A re-sent
+measurement with a jitter far below the noise, a corner replayed inside new data, corners
+copied into one another, uncertainties and pair counts no estimate has, and visits closer
+than the survey cadence (the default minimum period, 15 s): no valid correction from any;
+genuine visits a cadence apart are integrated.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cwfs_ros.ofc import control as C
+
+rclpy = pytest.importorskip("rclpy")
+
+from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
+
+T = 1_750_000_000_000_000_000
+SEC = 1_000_000_000
+VISIT = 40 * SEC
+
+
+def _state_vector(rng: np.random.Generator) -> np.ndarray:
+    sm = C.SensitivityMatrix.from_bundled()
+    x = rng.uniform(-1, 1, 50) * C.load_dof_spec().range * 0.01
+    return C.intrinsic_vector_nm("r", sm.field_points_deg) + sm.matrix_nm @ x
+
+
+def _vector(stamp: int, z: np.ndarray, unc: np.ndarray, pairs=(1, 1, 1, 1)) -> WavefrontVector:
+    m = WavefrontVector()
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+    m.zernikes_nm = np.asarray(z, dtype=float)
+    m.corner_valid = [True] * 4
+    m.corners = ["R00", "R04", "R40", "R44"]
+    m.uncertainty_nm = np.asarray(unc, dtype=float)
+    m.n_pairs = list(pairs)
+    return m
+
+
+def test_node_refuses_what_no_measurement_is(ros_context, spin):
+    from conftest import wait_for
+
+    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed")]))
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    out: list[DofCorrection] = []
+    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    rng = np.random.default_rng(11)
+    truth = _state_vector(rng)
+    unc = np.full(76, 12.0)
+
+    def measured() -> np.ndarray:
+        return truth + rng.normal(0, 8.0, 76)
+
+    def answer(stamp: int) -> DofCorrection:
+        wait_for(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out), 5,
+                 f"the answer to {stamp}")
+        (m,) = [m for m in out if stamp_to_ns(m.header.stamp) == stamp]
+        return m
+
+    first = measured()
+    pub.publish(_vector(T, first, unc))
+    assert answer(T).valid
+    # The same measurement re-sent with 1e-9 nm of noise every 20 s, past the period, and one
+    # corner of it inside otherwise new data: nothing integrated, no correction published.
+    silent = []
+    for k in range(1, 4):
+        silent.append(T + k * 20 * SEC)
+        pub.publish(_vector(silent[-1], first + rng.normal(0, 1e-9, 76), unc))
+        time.sleep(0.05)
+    mixed = measured()
+    mixed[57:] = first[57:] + rng.normal(0, 1e-9, 19)
+    silent.append(T + 80 * SEC)
+    pub.publish(_vector(silent[-1], mixed, unc))
+    wait_for(lambda: ofc.guard_counts.counts.get("repeated_measurement", 0) == 4, 5,
+             "four repeats counted")
+    # A genuine visit 5 s after an integrated one is too soon under the default period
+    # (15 s); 20 s later it is integrated.
+    s_ok = T + 100 * SEC
+    pub.publish(_vector(s_ok, measured(), unc))
+    assert answer(s_ok).valid
+    silent.append(s_ok + 5 * SEC)
+    pub.publish(_vector(silent[-1], measured(), unc))
+    wait_for(lambda: ofc.guard_counts.counts.get("too_soon", 0) == 1, 5, "too soon counted")
+    s_ok2 = s_ok + 20 * SEC
+    pub.publish(_vector(s_ok2, measured(), unc))
+    assert answer(s_ok2).valid
+    # Refused with a published reason: corners copied into one another, and claims no
+    # estimate makes (the +5000 nm would be within the bound 5 x 1e4 nm would widen).
+    cases = []
+    z = measured()
+    z[19:38] = z[:19]
+    cases.append((z, unc, (1, 1, 1, 1), "copied_corner"))
+    z = measured()
+    z = np.tile(z[:19], 4) + rng.normal(0, 1e-9, 76)
+    cases.append((z, unc, (1, 1, 1, 1), "copied_corner"))
+    z = measured()
+    z[:19] += 5000.0
+    cases.append((z, np.full(76, 1e4), (1, 1, 1, 1), "implausible_uncertainty"))
+    cases.append((measured(), np.full(76, 5e-324), (1, 1, 1, 1), "implausible_uncertainty"))
+    cases.append((measured(), unc, (1, 65535, 1, 1), "implausible_uncertainty"))
+    for k, (z, u, p, reason) in enumerate(cases):
+        stamp = s_ok2 + (k + 1) * VISIT
+        pub.publish(_vector(stamp, z, u, p))
+        m = answer(stamp)
+        assert not m.valid and m.status.startswith(reason), (k, reason, m.status)
+        assert not np.any(np.asarray(m.dof))
+    time.sleep(0.3)
+    assert not any(stamp_to_ns(m.header.stamp) in silent for m in out)
+    assert [m.valid for m in out].count(True) == 3
+    assert ofc.solver.n_steps == 3
+    kv = {x.key: x.value for x in ofc.diagnostics().values}
+    assert kv["guard.repeated_measurement"] == "4" and kv["guard.too_soon"] == "1"
+    assert kv["min_visit_period_s"] == "15.0"
+
+
+def test_uncertainty_limits_must_leave_room(ros_context, spin):
+    ofc = spin(OfcNode(context=ros_context))
+    res = ofc.set_parameters_atomically([Parameter("min_uncertainty_nm", value=900.0),
+                                         Parameter("max_uncertainty_nm", value=500.0)])
+    assert not res.successful and "min_uncertainty_nm" in res.reason
+    (res,) = ofc.set_parameters([Parameter("max_uncertainty_nm", value=500.0)])
+    assert res.successful
+    (res,) = ofc.set_parameters([Parameter("min_uncertainty_nm", value=900.0)])
+    assert not res.successful and "below" in res.reason
+    assert ofc.get_parameter("min_uncertainty_nm").value == 0.001
