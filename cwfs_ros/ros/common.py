@@ -47,6 +47,9 @@ __all__ = [
     "ManagedNode",
     "NodeBasics",
     "OUTPUT_QOS",
+    "GUARD_PARAMETERS",
+    "ParameterAudit",
+    "PublisherTrust",
     "QosEventMonitor",
     "image_qos",
     "RejectionCounter",
@@ -111,6 +114,31 @@ def _bundled_params(path: str) -> dict[str, dict[str, Any]]:
     return {key.lstrip("/"): values for key, values in read_params_file(path).items()}
 
 
+# Safety guards: read-only, set at start only (config/params.yaml, --params, -p). The
+# parameter services take a change from any process on the domain without saying which, so a
+# guard that could be switched off at runtime would be no guard (docs/reliability.md, "Who may
+# change a parameter"). Every other parameter stays changeable at runtime, and each change is
+# logged and reported on /diagnostics (:class:`ParameterAudit`).
+GUARD_PARAMETERS: dict[str, frozenset[str]] = {
+    "wavefront_node": frozenset({"pairing_tolerance_s", "max_pending_mb", "max_future_s"}),
+    "ofc_node": frozenset({
+        "controller", "matrix_source", "allow_partial", "max_step_scale", "clip_to_range",
+        "max_condition", "max_abs_zernike_nm", "max_future_s", "max_inconsistency",
+        "min_visit_period_s", "refuse_repeats", "plausibility_margin_nm",
+        "plausibility_n_sigma", "min_corner_rms_nm", "rotator_angle_source",
+        "vector_publishers"}),
+    "camera_sim_node": frozenset({"correction_max_step_scale", "correction_publishers"}),
+}
+# Changed as part of routine operation (the seeing monitor sets the seeing every visit, the
+# simulator's rotator follows the visit plan): logged and listed, but no WARN.
+ROUTINE_PARAMETERS: dict[str, frozenset[str]] = {
+    "wavefront_node": frozenset({"seeing_fwhm_arcsec"}),
+    "camera_sim_node": frozenset({"rotator_angle_deg"}),
+}
+_GUARD_NOTE = (" Read-only: a safety guard, set at start only (params file or -p), never "
+               "through the parameter services.")
+
+
 def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescriptor], Any]:
     """``declare(name, descriptor)`` for ``node``, with the default value taken from the
     ``section`` of ``config/params.yaml``.
@@ -123,12 +151,17 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
     (``5`` as 5.0: declared as an integer, the parameter would refuse a later 2.5), and a
     value of the wrong kind (``1e6`` is a string to YAML 1.1) is a ConfigError naming the
     file and the key, as is a parameter the file lacks.
+
+    A parameter of :data:`GUARD_PARAMETERS` is declared read-only whatever its descriptor
+    says, and every declared parameter is watched by the node's :class:`ParameterAudit`.
     """
     from cwfs_ros.errors import ConfigError
     from cwfs_ros.ros.params import default_params_file
 
     path = str(default_params_file())
     values = _bundled_params(path).get(section, {})
+    guards = GUARD_PARAMETERS.get(section, frozenset())
+    audit = ParameterAudit.of(node, ROUTINE_PARAMETERS.get(section, frozenset()))
 
     def declare(name: str, descriptor: ParameterDescriptor) -> Any:
         where = f"{path}: {section}.{name}"
@@ -143,9 +176,107 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
             value = float(value)
         elif descriptor.integer_range and not (number and isinstance(value, int)):
             raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return node.declare_parameter(name, value, descriptor)
+        if name in guards and not descriptor.read_only:
+            descriptor.read_only = True
+            descriptor.description += _GUARD_NOTE
+        declared = node.declare_parameter(name, value, descriptor)
+        audit.watch(name, declared.value)
+        return declared
 
     return declare
+
+
+class ParameterAudit:
+    """Every runtime change of a node's parameters, logged and reported on /diagnostics.
+
+    The parameter services accept a change from any process on the domain and do not say
+    which one sent it; the node can still say what changed. Each change is logged (WARN, INFO
+    for the node's routine parameters) with the old and new value, counted, and, for
+    :attr:`warn_s` seconds after it, raises the node's /diagnostics status to WARN naming the
+    parameter and both values (:meth:`annotate`, applied by
+    :meth:`NodeBasics.publish_diagnostics`). Safety guards are read-only instead
+    (:data:`GUARD_PARAMETERS`).
+    """
+
+    warn_s = 60.0
+
+    def __init__(self, node: Any, routine: frozenset[str] = frozenset()) -> None:
+        self._node = node
+        self._routine = routine
+        self._lock = threading.Lock()
+        self._known: dict[str, Any] = {}
+        self.changes = 0
+        self.last_change = ""
+        self._last_warn: tuple[float, str] | None = None
+        node.add_post_set_parameters_callback(self._after_set)
+
+    @classmethod
+    def of(cls, node: Any, routine: frozenset[str] = frozenset()) -> ParameterAudit:
+        """The node's audit, made on first use."""
+        audit = getattr(node, "_parameter_audit", None)
+        if audit is None:
+            audit = cls(node, routine)
+            node._parameter_audit = audit
+        return audit
+
+    def watch(self, name: str, value: Any) -> None:
+        """Start watching a declared parameter at its starting value."""
+        with self._lock:
+            self._known[name] = value
+
+    def _after_set(self, params: Sequence[Any]) -> None:
+        for p in params:
+            with self._lock:
+                if p.name not in self._known or _same_value(self._known[p.name], p.value):
+                    continue  # a declaration, or a set to the value it had
+                old, self._known[p.name] = self._known[p.name], p.value
+                text = (f"parameter {p.name} changed at runtime: {_show_value(old)} -> "
+                        f"{_show_value(p.value, old)}")
+                self.changes += 1
+                self.last_change = text
+                if p.name not in self._routine:
+                    self._last_warn = (time.monotonic(), text)
+            log = self._node.get_logger()
+            (log.info if p.name in self._routine else log.warning)(text)
+
+    def warning(self) -> str | None:
+        """The latest non-routine change if it is less than :attr:`warn_s` old, else None."""
+        with self._lock:
+            w = self._last_warn
+        return w[1] if w is not None and time.monotonic() - w[0] < self.warn_s else None
+
+    def annotate(self, status: DiagnosticStatus) -> DiagnosticStatus:
+        """Add the counts to ``status``; raise an OK status to WARN after a recent change."""
+        with self._lock:
+            status.values += [KeyValue(key="parameter_changes", value=str(self.changes)),
+                              KeyValue(key="last_parameter_change",
+                                       value=self.last_change or "none")]
+        w = self.warning()
+        if w is not None and status.level == OK:
+            status.level, status.message = WARN, w
+        return status
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    try:
+        return bool(a == b) if not hasattr(a, "__len__") or isinstance(a, str) else \
+            list(a) == list(b)
+    except Exception:  # noqa: BLE001 - values of different kinds are different
+        return False
+
+
+def _show_value(value: Any, old: Any = None) -> str:
+    """A parameter value for a log line: short; for a list, the entries that changed."""
+    if isinstance(value, str):
+        return repr(value if len(value) <= 80 else value[:77] + "...")
+    if hasattr(value, "__len__"):
+        new = list(value)
+        if old is not None and hasattr(old, "__len__") and len(old) == len(new):
+            diff = [f"[{i}] {old[i]!r}->{v!r}" for i, v in enumerate(new) if old[i] != v]
+            return f"{len(new)} values, changed {', '.join(diff[:8])}" + (
+                f" (+{len(diff) - 8} more)" if len(diff) > 8 else "")
+        return f"{len(new)} values"
+    return repr(value)
 
 
 def result(ok: bool, reason: str = "") -> SetParametersResult:
@@ -233,14 +364,23 @@ def string_param_problem(name: str, value: object,
     return None
 
 
+def _endpoint(info: Any) -> str:
+    """``/ns/node (gid 0f1e...)`` of a TopicEndpointInfo."""
+    ns = str(info.node_namespace).rstrip("/")
+    gid = bytes(info.endpoint_gid).hex().rstrip("0")[:32] or "0"
+    return f"{ns}/{info.node_name} (gid {gid})"
+
+
 def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
-    """``"<topic>: <namespace>/<node>"`` for every publisher on ``topics`` (this node's own
-    outputs) that is not ``node`` itself.
+    """``"<topic>: <namespace>/<node> (gid ...)"`` for every publisher endpoint on ``topics``
+    (this node's own outputs) that is not one of ``node``'s own publishers.
 
     Without DDS Security nothing stops another process from publishing on a topic this node
     owns; consumers cannot tell its messages from the node's, so the node names such
-    publishers on /diagnostics. ``topics`` are names as the node created them (resolved
-    here).
+    publishers on /diagnostics. A node name proves nothing (any process may call its node
+    ``ofc_node``): the endpoints named like this node are counted against the publishers it
+    created on the topic, and any beyond them are reported too, with their endpoint gids.
+    ``topics`` are names as the node created them (resolved here).
     """
     me = (node.get_namespace().rstrip("/"), node.get_name())
     out = []
@@ -248,13 +388,95 @@ def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
         try:
             name = node.resolve_topic_name(t)
             infos = node.get_publishers_info_by_topic(name)
+            own = sum(1 for p in node.publishers if p.topic_name == name)
         except Exception:  # noqa: BLE001 - a graph query must not break diagnostics
             continue
-        for info in infos:
-            who = (str(info.node_namespace).rstrip("/"), str(info.node_name))
-            if who != me:
-                out.append(f"{name}: {who[0]}/{who[1]}")
+        named_me = [i for i in infos
+                    if (str(i.node_namespace).rstrip("/"), str(i.node_name)) == me]
+        out += [f"{name}: {_endpoint(i)}" for i in infos if i not in named_me]
+        if len(named_me) > own:
+            out.append(f"{name}: {len(named_me)} endpoints named {me[0]}/{me[1]} for this "
+                       f"node's {own} (another process under its name: "
+                       f"{', '.join(_endpoint(i) for i in named_me)})")
     return sorted(out)
+
+
+class PublisherTrust:
+    """Whether a consumer may act on what arrives on its input topic: only while the topic
+    has exactly the publishers it expects.
+
+    rclpy's message info names no publisher, so a message cannot be traced to its sender.
+    What the node can know is the topic's publishers: DDS delivers no sample from a writer
+    before discovery has matched it with this reader, so while the reader has exactly the
+    ``expected`` matched writers and the graph lists exactly that many publisher endpoints
+    (whatever their node names), the message came from one of them. Anything else (a second
+    writer, an impostor named like the owner, the owner missing) refuses the message
+    (``untrusted_source``). A change of the matched writers that leaves the wrong count, even
+    briefly, keeps refusing for :attr:`settle_s`: a writer that matched, sent and left is
+    caught when its match event is taken before its sample. A writer that matches, sends and
+    leaves within the moment between its sample's arrival and its processing is not in the
+    count any more; its match still shows on /diagnostics (``untrusted_recent``). A crashed
+    publisher stays listed until its discovery lease expires (config/fastdds_profile.xml).
+    ``expected`` 0 turns the check off. The queries read the local graph cache: a few
+    microseconds each (docs/reliability.md).
+    """
+
+    settle_s = 2.0
+
+    def __init__(self, node: Any, topic: str, expected: int) -> None:
+        self._node = node
+        self.topic = node.resolve_topic_name(topic)
+        self.expected = int(expected)
+        self.sub: Any = None
+        self._lock = threading.Lock()
+        self._bad_at = -1e9
+        self._bad_what = ""
+
+    def event_callbacks(self) -> Any:
+        """``event_callbacks`` for ``create_subscription``: match changes are noted."""
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        return SubscriptionEventCallbacks(matched=self._on_matched)
+
+    def _on_matched(self, status: Any) -> None:
+        if self.expected > 0 and int(status.current_count) != self.expected:
+            with self._lock:
+                self._bad_at = time.monotonic()
+                self._bad_what = (f"{status.current_count} writer(s) matched on {self.topic} "
+                                  f"(expected {self.expected})")
+
+    def problem(self) -> str | None:
+        """Why a message taken now must not be acted on, or None."""
+        if self.expected <= 0:
+            return None
+        try:
+            n_graph = int(self._node.count_publishers(self.topic))
+            n_matched = int(self.sub.get_publisher_count()) if self.sub is not None else n_graph
+        except Exception as exc:  # noqa: BLE001 - an unanswered query is no trust
+            return f"the publishers of {self.topic} cannot be read: {exc}"
+        if n_graph != self.expected or n_matched != self.expected:
+            return (f"{self.topic} has {n_graph} publisher(s) ({n_matched} matched), "
+                    f"expected exactly {self.expected}: {self.publishers()}")
+        with self._lock:
+            age, what = time.monotonic() - self._bad_at, self._bad_what
+        if age < self.settle_s:
+            return (f"{what} {age:.1f} s ago (refused for {self.settle_s:g} s after); now: "
+                    f"{self.publishers()}")
+        return None
+
+    def recent(self, window_s: float) -> str | None:
+        """The last wrong count of matched writers if within ``window_s``, else None."""
+        with self._lock:
+            age, what = time.monotonic() - self._bad_at, self._bad_what
+        return f"{what} {age:.0f} s ago" if age < window_s else None
+
+    def publishers(self) -> str:
+        """The topic's publisher endpoints, for a message."""
+        try:
+            infos = self._node.get_publishers_info_by_topic(self.topic)
+        except Exception:  # noqa: BLE001
+            return "unknown"
+        return ", ".join(_endpoint(i) for i in infos) or "none"
 
 
 class SequenceGaps:
@@ -386,9 +608,15 @@ class NodeBasics:
         return self.get_parameter(name).value
 
     def publish_diagnostics(self) -> None:
+        """Publish :meth:`diagnostics`, with the parameter changes of
+        :class:`ParameterAudit` added."""
         try:
+            status = self.diagnostics()
+            audit = getattr(self, "_parameter_audit", None)
+            if audit is not None:
+                status = audit.annotate(status)
             self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
-                                                    [self.diagnostics()]))
+                                                    [status]))
         except Exception as exc:  # noqa: BLE001 - a diagnostics failure must not stop a node
             self.get_logger().error(f"diagnostics failed: {exc}")
 
