@@ -506,7 +506,7 @@ class CameraSimNode(NodeBasics, Node):
                    ("untrusted_recent", self.trust.recent(60.0) or "none")]
         n_pub = self.count_publishers(self.trust.topic)
         if self.untrusted.recent(60.0):
-            level, message = ERROR, f"refused a correction: {self.untrusted.last_message}"
+            level, message = ERROR, f"untrusted_source: {self.untrusted.last_message}"
         elif n_pub > self.trust.expected > 0:
             level, message = ERROR, (f"untrusted_source: {n_pub} publishers on "
                                      f"{self.trust.topic}, expected {self.trust.expected}: "
