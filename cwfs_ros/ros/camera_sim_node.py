@@ -270,11 +270,12 @@ class CameraSimNode(NodeBasics, Node):
             if reason[0] == "untrusted_source":
                 self.untrusted.add(*reason)
             due, n = self.ignored.log_due(reason[0], 5.0)
-            if due:
-                log = self.get_logger()
-                (log.error if reason[0] == "untrusted_source" else log.info)(
-                    f"ignored DofCorrection ({reason[0]}: {reason[1]})"
+            text = (f"ignored DofCorrection ({reason[0]}: {reason[1]})"
                     + (f" (+{n} more not logged)" if n else ""))
+            if due and reason[0] == "untrusted_source":
+                self.get_logger().error(text)
+            elif due:
+                self.get_logger().info(text)
             return
         noise = float(self._param("actuator_noise"))
         with self._lock:

@@ -236,8 +236,11 @@ class ParameterAudit:
                 self.last_change = text
                 if p.name not in self._routine:
                     self._last_warn = (time.monotonic(), text)
-            log = self._node.get_logger()
-            (log.info if p.name in self._routine else log.warning)(text)
+            # two call sites: rclpy refuses one call site logging at two severities
+            if p.name in self._routine:
+                self._node.get_logger().info(text)
+            else:
+                self._node.get_logger().warning(text)
 
     def warning(self) -> str | None:
         """The latest non-routine change if it is less than :attr:`warn_s` old, else None."""

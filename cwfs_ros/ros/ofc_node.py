@@ -470,15 +470,19 @@ class OfcNode(ManagedNode):
             with self._lock:
                 self.stats["vectors"] += 1
                 dry = self.dry_run
+                now = self.get_clock().now().nanoseconds
                 if problem is None:
                     problem = self.state_problem
+                if problem is None:
+                    # stale or ahead of the clock: said before the rotator is asked (a visit
+                    # stamped ahead has no rotator sample either, and that is not its fault)
+                    problem = self.solver._stamp_problem(stamp, now)
                 angle, why = rotator_angle_for(self._param, self.rotator, stamp)
                 before = state_record(self.solver) if self.state_file else None
                 out = self._refusal(problem) if problem is not None else step_controller(
                     self.solver, z, valid,
                     uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
-                    angle_deg=angle, angle_why=why, stamp_ns=stamp,
-                    now_ns=self.get_clock().now().nanoseconds, dry_run=dry)
+                    angle_deg=angle, angle_why=why, stamp_ns=stamp, now_ns=now, dry_run=dry)
                 if out.valid and not dry:
                     out = self._persist(out, before)
                 self._log_observability_change(out)
