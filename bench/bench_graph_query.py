@@ -1,0 +1,67 @@
+#!/usr/bin/env python
+"""What the publisher checks of "who may act" cost per message (docs/reliability.md).
+
+A consumer (ofc_node, camera_sim_node) asks, for every message it takes, how many writers its
+subscription has matched and how many publisher endpoints the graph lists on the topic; only to
+name the endpoints of a refusal does it list them. All three read rmw's local graph cache. This
+times each on a node with one publisher on its topic, in one process.
+
+Usage: .venv/bin/python bench/bench_graph_query.py [--calls N] [--domain D]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(REPO / "config" /
+                                                             "fastdds_profile.xml"))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calls", type=int, default=20000)
+    ap.add_argument("--domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID", "77")))
+    args = ap.parse_args()
+
+    import rclpy
+    from cwfs_msgs.msg import WavefrontVector
+    from rclpy.executors import SingleThreadedExecutor
+
+    from cwfs_ros.layout import VECTOR_TOPIC
+    from cwfs_ros.ros.common import OUTPUT_QOS
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=args.domain)
+    owner = rclpy.create_node("bench_owner", context=ctx)
+    consumer = rclpy.create_node("bench_consumer", context=ctx)
+    topic = "/" + VECTOR_TOPIC.lstrip("/")
+    owner.create_publisher(WavefrontVector, topic, OUTPUT_QOS)
+    sub = consumer.create_subscription(WavefrontVector, topic, lambda m: None, OUTPUT_QOS)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(owner)
+    ex.add_node(consumer)
+    t_end = time.monotonic() + 10
+    while sub.get_publisher_count() < 1 and time.monotonic() < t_end:
+        ex.spin_once(timeout_sec=0.05)
+    queries = {
+        "Subscription.get_publisher_count": sub.get_publisher_count,
+        "Node.count_publishers": lambda: consumer.count_publishers(topic),
+        "Node.get_publishers_info_by_topic": lambda: consumer.get_publishers_info_by_topic(topic),
+    }
+    for name, query in queries.items():
+        t = time.perf_counter()
+        for _ in range(args.calls):
+            out = query()
+        per_us = (time.perf_counter() - t) / args.calls * 1e6
+        n = len(out) if isinstance(out, list) else out
+        print(f"{name:36s} {per_us:7.1f} us per call ({args.calls} calls; {n} publisher)")
+    ctx.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
