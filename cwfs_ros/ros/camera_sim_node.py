@@ -16,7 +16,9 @@ in   ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection: a valid, non-dry-run c
      added to the DoF state (used from the next rendered visit), only if its stamp is a visit
      this node published and has not corrected yet, and each |step| is within dof.yaml's
      max_step x ``correction_max_step_scale`` (``not_our_visit``, ``already_corrected``,
-     ``step_limit``): nothing else on the topic can move the telescope
+     ``step_limit``), and only while the topic has exactly ``correction_publishers``
+     publishers (``untrusted_source``, ERROR on /diagnostics): nothing else on the topic can
+     move the telescope
 out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored,
      other publishers on its image and truth topics
 srv  ``~/trigger``               std_srvs/Trigger: render one visit now (the only way when

@@ -20,9 +20,10 @@ uncertainties (directions the corners barely see are dropped and reported), and 
 correction that minimises the predicted wavefront error over the whole science field within
 the step limits and strokes. ``controller: pid`` is ts_ofc's scheme
 (:class:`cwfs_ros.ofc.control.OFCSolver`: range-fwhm weights, truncated SVD, PI gains), kept
-for comparison; it has no rotator model and refuses a rotated camera. With ``state_file`` the
-state is written atomically after every applied visit and read back at start, so a
-restarted node continues and refuses visits it already applied.
+for comparison; it has no rotator model and refuses a rotated camera. The state is written
+atomically to ``state_file`` after every applied visit and read back at start (by default
+under ``$ROS_HOME``, :func:`cwfs_ros.ros.params.state_file_path`), so a restarted node
+continues and refuses visits it already applied.
 
 The DoF convention is batoid_rubin's (OCS), the one of
 ``DofCorrection``; both matrix sources are converted to it. A vector with an invalid corner is
@@ -40,7 +41,9 @@ DofCorrection, so that a flood is not passed on; a valid corner beyond the physi
 (``no_measurement``) or without the uncertainty its producer reports for the others
 (``no_uncertainty``) is refused like any other refusal. Vectors the subscription queue
 dropped are counted from the publishers' sequence numbers; other publishers on the
-correction topic are named on /diagnostics.
+correction topic are named on /diagnostics. A vector is acted on only while its topic has
+exactly ``vector_publishers`` publishers (:class:`~cwfs_ros.ros.common.PublisherTrust`; else
+``untrusted_source``, no correction, ERROR on /diagnostics).
 """
 
 from __future__ import annotations
