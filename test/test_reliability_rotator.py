@@ -154,6 +154,8 @@ def test_a_vector_stamped_far_ahead_is_refused_and_blocks_nothing(ofc_loop):
     # the next genuine visit is taken, not refused as older than the one ahead
     t = now - 10 * SEC
     joints.publish(_joint(t, 0.0))
+    wait_for(lambda: taken["rotator_samples"] + taken["rotator_samples_ignored"] == 2, 10,
+             "the genuine sample taken")
     vec.publish(_vector(ofc, t, 0.0))
     wait_for(lambda: t in got, 20, "the next visit's correction")
     assert got[t][0].valid, got[t][0].status
