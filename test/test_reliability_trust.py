@@ -193,3 +193,28 @@ def test_camera_sim_applies_corrections_only_from_the_one_publisher(ros_domain):
         np.testing.assert_array_equal(node.dof_state, state + small)
     finally:
         close()
+
+
+def test_an_impostor_that_sends_and_leaves_at_once_is_still_refused(ofc_graph, ros_domain):
+    """The impostor matches, waits past the settle time, sends one vector and leaves before
+    ofc_node takes it: the publisher count is back to one by then, but the reader's matched
+    status still counts the writer that came and went."""
+    ofc, pub, got, _ = ofc_graph
+    t0 = (time.time_ns() // SEC - 1000) * SEC
+    untrusted = ofc.guard_counts.counts
+    for k in (1, 2, 3):
+        imp = Impostor(ros_domain, "wavefront_node", WavefrontVector, "aos/wfs/wavefront")
+        wait_for(lambda imp=imp: imp.pub.get_subscription_count() > 0, 20, "the impostor")
+        time.sleep(2.5)
+        stamp = t0 + k * 40 * SEC
+        imp.pub.publish(good_vector(stamp, dx_um=100.0 * k))
+        imp.close()
+        wait_for(lambda k=k: untrusted["untrusted_source"] == k, 10, f"vector {k} refused")
+        assert stamp not in got
+    assert ofc.solver.n_steps == 0
+    # and the one producer is trusted again once its topic has settled
+    wait_for(lambda: ofc.trust.problem() is None, 15, "trust back")
+    s = t0 + 10 * 40 * SEC
+    pub.publish(good_vector(s, dx_um=500.0))
+    wait_for(lambda: s in got, 10, "the producer's correction")
+    assert got[s][0].valid, got[s][0].status

@@ -186,9 +186,8 @@ class CameraSimNode(NodeBasics, Node):
         self.trust = PublisherTrust(self, CORRECTION_TOPIC,
                                     int(self._param("correction_publishers")))
         self.sub = self.create_subscription(DofCorrection, CORRECTION_TOPIC,
-                                            self._on_correction, OUTPUT_QOS,
-                                            event_callbacks=self.trust.event_callbacks())
-        self.trust.sub = self.sub
+                                            self._on_correction, OUTPUT_QOS)
+        self.trust.attach(self.sub)
         self.srv = self.create_service(Trigger, "~/trigger", self._on_trigger)
         period = float(self._param("visit_period_s"))
         self._visit_timer = (self.create_timer(period, self._on_period) if period > 0 else None)
@@ -533,6 +532,7 @@ class CameraSimNode(NodeBasics, Node):
             th.join(timeout=1.0)  # a donut in progress finishes on its own (daemon thread)
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
+        self.trust.detach()  # its event handle before the subscription
         super().destroy_node()
 
 

@@ -412,19 +412,19 @@ class PublisherTrust:
     has exactly the publishers it expects.
 
     rclpy's message info names no publisher, so a message cannot be traced to its sender.
-    What the node can know is the topic's publishers: DDS delivers no sample from a writer
-    before discovery has matched it with this reader, so while the reader has exactly the
-    ``expected`` matched writers and the graph lists exactly that many publisher endpoints
-    (whatever their node names), the message came from one of them. Anything else (a second
-    writer, an impostor named like the owner, the owner missing) refuses the message
-    (``untrusted_source``). A change of the matched writers that leaves the wrong count, even
-    briefly, keeps refusing for :attr:`settle_s`: a writer that matched, sent and left is
-    caught when its match event is taken before its sample. A writer that matches, sends and
-    leaves within the moment between its sample's arrival and its processing is not in the
-    count any more; its match still shows on /diagnostics (``untrusted_recent``). A crashed
-    publisher stays listed until its discovery lease expires (config/fastdds_profile.xml).
-    ``expected`` 0 turns the check off. The queries read the local graph cache: a few
-    microseconds each (docs/reliability.md).
+    What the node can know is the topic's writers: DDS delivers no sample from a writer
+    before discovery has matched it with this reader, and the reader's matched status counts
+    every writer that ever matched (``total_count``), however briefly. A message is acted on
+    only while the reader has exactly ``expected`` matched writers, the graph lists exactly
+    that many publisher endpoints (whatever their node names), and no writer has matched
+    since the publishers were last trusted: a writer that matched, sent and left before the
+    message was taken is still counted. After a change (a restarted producer, an impostor
+    come and gone) trust returns once the count has been ``expected`` for :attr:`settle_s`.
+    Anything else refuses the message (``untrusted_source``). The matched status is read
+    synchronously from an event handle of the subscription's own (no executor involved); a
+    crashed publisher stays matched until its discovery lease expires
+    (config/fastdds_profile.xml). ``expected`` 0 turns the check off. The queries read the
+    local graph cache and the reader's status: a few microseconds each (docs/reliability.md).
     """
 
     settle_s = 2.0
@@ -434,46 +434,90 @@ class PublisherTrust:
         self.topic = node.resolve_topic_name(topic)
         self.expected = int(expected)
         self.sub: Any = None
+        self._event: Any = None
         self._lock = threading.Lock()
-        self._bad_at = -1e9
-        self._bad_what = ""
+        self._baseline: int | None = None  # writers ever matched when last trusted
+        self._seen: tuple[int, int] | None = None  # (ever matched, matched) at the last poll
+        self._changed_at = -1e9
+        self._what = ""
 
-    def event_callbacks(self) -> Any:
-        """``event_callbacks`` for ``create_subscription``: match changes are noted."""
-        from rclpy.event_handler import SubscriptionEventCallbacks
+    def attach(self, sub: Any) -> None:
+        """Watch ``sub`` (the subscription of :attr:`topic`)."""
+        from rclpy.event_handler import QoSSubscriptionEventType
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
-        return SubscriptionEventCallbacks(matched=self._on_matched)
+        self.sub = sub
+        with sub.handle:
+            self._event = _rclpy.EventHandle(
+                sub.handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MATCHED)
 
-    def _on_matched(self, status: Any) -> None:
-        if self.expected > 0 and int(status.current_count) != self.expected:
-            with self._lock:
-                self._bad_at = time.monotonic()
-                self._bad_what = (f"{status.current_count} writer(s) matched on {self.topic} "
-                                  f"(expected {self.expected})")
+    def detach(self) -> None:
+        """Release the event handle (before the subscription is destroyed)."""
+        event, self._event, self.sub = self._event, None, None
+        if event is not None:
+            event.destroy_when_not_in_use()
+
+    def _matched(self) -> tuple[int, int] | None:
+        """(writers ever matched, writers matched now), read now."""
+        event = self._event
+        if event is None:
+            return None
+        with event:
+            status = event.take_event()
+        return None if status is None else (int(status.total_count),
+                                            int(status.current_count))
+
+    def _poll(self) -> tuple[int, int] | None:
+        """Read the matched status and note a change of it."""
+        seen = self._matched()
+        if seen is None:
+            return None
+        now = time.monotonic()
+        with self._lock:
+            if seen != self._seen:
+                if self._baseline is None and seen[0] == seen[1] == self.expected:
+                    self._baseline = seen[0]  # the first writers: none came and went
+                else:
+                    self._changed_at = now
+                    self._what = (f"the writers matched on {self.topic} changed "
+                                  f"({self._seen[1] if self._seen else 0} -> {seen[1]} now, "
+                                  f"{seen[0]} ever)")
+                self._seen = seen
+            elif seen[1] == self.expected and seen[0] != self._baseline and \
+                    now - self._changed_at >= self.settle_s:
+                self._baseline = seen[0]
+        return seen
 
     def problem(self) -> str | None:
         """Why a message taken now must not be acted on, or None."""
         if self.expected <= 0:
             return None
         try:
+            seen = self._poll()
             n_graph = int(self._node.count_publishers(self.topic))
-            n_matched = int(self.sub.get_publisher_count()) if self.sub is not None else n_graph
         except Exception as exc:  # noqa: BLE001 - an unanswered query is no trust
             return f"the publishers of {self.topic} cannot be read: {exc}"
+        n_matched = n_graph if seen is None else seen[1]
         if n_graph != self.expected or n_matched != self.expected:
             return (f"{self.topic} has {n_graph} publisher(s) ({n_matched} matched), "
                     f"expected exactly {self.expected}: {self.publishers()}")
         with self._lock:
-            age, what = time.monotonic() - self._bad_at, self._bad_what
-        if age < self.settle_s:
-            return (f"{what} {age:.1f} s ago (refused for {self.settle_s:g} s after); now: "
-                    f"{self.publishers()}")
+            baseline, age, what = self._baseline, time.monotonic() - self._changed_at, \
+                self._what
+        if seen is not None and seen[0] != baseline:
+            return (f"{what} {age:.1f} s ago: a writer matched since the publishers were last "
+                    f"trusted; trusted again once they have been exactly {self.expected} for "
+                    f"{self.settle_s:g} s (now: {self.publishers()})")
         return None
 
     def recent(self, window_s: float) -> str | None:
-        """The last wrong count of matched writers if within ``window_s``, else None."""
+        """The last change of the matched writers if within ``window_s``, else None."""
+        try:
+            self._poll()
+        except Exception:  # noqa: BLE001 - diagnostics go on
+            pass
         with self._lock:
-            age, what = time.monotonic() - self._bad_at, self._bad_what
+            age, what = time.monotonic() - self._changed_at, self._what
         return f"{what} {age:.0f} s ago" if age < window_s else None
 
     def publishers(self) -> str:

@@ -165,9 +165,8 @@ class OfcNode(ManagedNode):
         self.pub = self.create_lifecycle_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
         self.trust = PublisherTrust(self, VECTOR_TOPIC, int(self._param("vector_publishers")))
         self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC,
-                                            self._on_vector_info, OUTPUT_QOS,
-                                            event_callbacks=self.trust.event_callbacks())
-        self.trust.sub = self.sub
+                                            self._on_vector_info, OUTPUT_QOS)
+        self.trust.attach(self.sub)
         # Joint states come at the rotator's rate: a deeper queue than the outputs', so that a
         # burst around a visit is not lost; reliable, as robot_state_publisher's are.
         self.sub_joints = self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
@@ -183,6 +182,9 @@ class OfcNode(ManagedNode):
     def _release_resources(self) -> None:
         """cleanup / shutdown: the topics, the service and the controller (its state is in
         the state file after every applied visit, and read again on configure)."""
+        trust = getattr(self, "trust", None)
+        if trust is not None:
+            trust.detach()  # its event handle before the subscription
         for sub in (self.sub, self.sub_joints):
             if sub is not None:
                 self.destroy_subscription(sub)
