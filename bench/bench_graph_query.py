@@ -1,10 +1,11 @@
 #!/usr/bin/env python
 """What the publisher checks of "who may act" cost per message (docs/reliability.md).
 
-A consumer (ofc_node, camera_sim_node) asks, for every message it takes, how many writers its
-subscription has matched and how many publisher endpoints the graph lists on the topic; only to
-name the endpoints of a refusal does it list them. All three read rmw's local graph cache. This
-times each on a node with one publisher on its topic, in one process.
+A consumer (ofc_node, camera_sim_node) asks, for every message it takes, its subscription's
+matched status (writers matched now and ever) and how many publisher endpoints the graph lists
+on the topic (``PublisherTrust.problem``); only to name the endpoints of a refusal does it list
+them. They read the reader's status and rmw's local graph cache. This times each on a node with
+one publisher on its topic, in one process.
 
 ``--lease``: how long a SIGKILLed publisher (a process of its own) stays in the graph and
 matched, i.e. how long a restarted producer's messages are refused (FastDDS profile as the
@@ -58,7 +59,13 @@ def main() -> int:
     t_end = time.monotonic() + 10
     while sub.get_publisher_count() < 1 and time.monotonic() < t_end:
         ex.spin_once(timeout_sec=0.05)
+    from cwfs_ros.ros.common import PublisherTrust
+
+    trust = PublisherTrust(consumer, topic, 1)
+    trust.attach(sub)
     queries = {
+        "matched status (event handle)": trust._matched,
+        "PublisherTrust.problem (per message)": trust.problem,
         "Subscription.get_publisher_count": sub.get_publisher_count,
         "Node.count_publishers": lambda: consumer.count_publishers(topic),
         "Node.get_publishers_info_by_topic": lambda: consumer.get_publishers_info_by_topic(topic),
@@ -68,8 +75,8 @@ def main() -> int:
         for _ in range(args.calls):
             out = query()
         per_us = (time.perf_counter() - t) / args.calls * 1e6
-        n = len(out) if isinstance(out, list) else out
-        print(f"{name:36s} {per_us:7.1f} us per call ({args.calls} calls; {n} publisher)")
+        print(f"{name:38s} {per_us:7.1f} us per call ({args.calls} calls): {out!r:.60}")
+    trust.detach()
     ctx.try_shutdown()
     return 0
 
