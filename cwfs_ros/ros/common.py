@@ -417,10 +417,13 @@ class PublisherTrust:
     every writer that ever matched (``total_count``), however briefly. A message is acted on
     only while the reader has exactly ``expected`` matched writers, the graph lists exactly
     that many publisher endpoints (whatever their node names), and no writer has matched
-    since the publishers were last trusted: a writer that matched, sent and left before the
-    message was taken is still counted. After a change (a restarted producer, an impostor
-    come and gone) trust returns once the count has been ``expected`` for :attr:`settle_s`.
-    Anything else refuses the message (``untrusted_source``). The matched status is read
+    since the publishers were last trusted that is not still listed: a writer that matched,
+    sent and left before the message was taken is still counted (the writers matched ever,
+    against the endpoint gids the graph lists now), while a restarted producer, whose new
+    endpoint is listed in place of the old one, is trusted at once (the receiver cannot tell a
+    restart from a replacement anyway). A writer that came and went is forgotten once the
+    count has been ``expected`` for :attr:`settle_s`. Anything else refuses the message
+    (``untrusted_source``). The matched status is read
     synchronously from an event handle of the subscription's own (no executor involved); a
     crashed publisher stays matched until its discovery lease expires
     (config/fastdds_profile.xml). ``expected`` 0 turns the check off. The queries read the
@@ -437,6 +440,7 @@ class PublisherTrust:
         self._event: Any = None
         self._lock = threading.Lock()
         self._baseline: int | None = None  # writers ever matched when last trusted
+        self._baseline_gids: set[bytes] = set()  # their endpoints then
         self._seen: tuple[int, int] | None = None  # (ever matched, matched) at the last poll
         self._changed_at = -1e9
         self._what = ""
@@ -474,19 +478,41 @@ class PublisherTrust:
             return None
         now = time.monotonic()
         with self._lock:
-            if seen != self._seen:
-                if self._baseline is None and seen[0] == seen[1] == self.expected:
-                    self._baseline = seen[0]  # the first writers: none came and went
-                else:
-                    self._changed_at = now
-                    self._what = (f"the writers matched on {self.topic} changed "
-                                  f"({self._seen[1] if self._seen else 0} -> {seen[1]} now, "
-                                  f"{seen[0]} ever)")
-                self._seen = seen
+            first = self._seen is None
+            changed = seen != self._seen and not (first and seen[0] == 0)
+            if changed and self._baseline is None and seen[0] == seen[1] == self.expected:
+                self._trust_now(seen[0])  # the first writers: none came and went
+            elif changed:
+                self._changed_at = now
+                self._what = (f"the writers matched on {self.topic} changed "
+                              f"({self._seen[1] if self._seen else 0} -> {seen[1]} now, "
+                              f"{seen[0]} ever)")
             elif seen[1] == self.expected and seen[0] != self._baseline and \
                     now - self._changed_at >= self.settle_s:
-                self._baseline = seen[0]
+                self._trust_now(seen[0])
+            self._seen = seen
         return seen
+
+    def _gids(self) -> set[bytes]:
+        return {bytes(i.endpoint_gid)
+                for i in self._node.get_publishers_info_by_topic(self.topic)}
+
+    def _trust_now(self, total: int) -> None:
+        """Take the writers matched now as the trusted ones (under the lock)."""
+        self._baseline = total
+        self._baseline_gids = self._gids()
+
+    def _replaced_only(self, total: int) -> bool:
+        """Whether every writer matched since the last trust is still listed (a restart or a
+        replacement, not one that came and went); if so, trust them now."""
+        with self._lock:
+            if self._baseline is None:
+                return False
+            new = self._gids() - self._baseline_gids
+            if total - self._baseline <= len(new):
+                self._trust_now(total)
+                return True
+            return False
 
     def problem(self) -> str | None:
         """Why a message taken now must not be acted on, or None."""
@@ -504,10 +530,10 @@ class PublisherTrust:
         with self._lock:
             baseline, age, what = self._baseline, time.monotonic() - self._changed_at, \
                 self._what
-        if seen is not None and seen[0] != baseline:
-            return (f"{what} {age:.1f} s ago: a writer matched since the publishers were last "
-                    f"trusted; trusted again once they have been exactly {self.expected} for "
-                    f"{self.settle_s:g} s (now: {self.publishers()})")
+        if seen is not None and seen[0] != baseline and not self._replaced_only(seen[0]):
+            return (f"{what} {age:.1f} s ago: a writer matched and left since the publishers "
+                    f"were last trusted; trusted again once they have been exactly "
+                    f"{self.expected} for {self.settle_s:g} s (now: {self.publishers()})")
         return None
 
     def recent(self, window_s: float) -> str | None:
