@@ -47,6 +47,23 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _ros_home_module(tmp_path_factory):
+    """``$ROS_HOME`` of a module's shared graphs: a directory of its own (ofc_node keeps its
+    state under ``$ROS_HOME`` by default, and one module's visits must not be another's)."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("ROS_HOME", str(tmp_path_factory.mktemp("ros_home")))
+    yield
+    mp.undo()
+
+
+@pytest.fixture(autouse=True)
+def _ros_home(_ros_home_module, tmp_path_factory, monkeypatch):
+    """``$ROS_HOME`` of one test (nodes in this process and the processes it starts): no
+    state file is shared between tests, and none is written to ``~/.ros``."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path_factory.mktemp("ros_home")))
+
+
 def next_domain() -> int:
     """A domain id in 0..101, unique within this pytest process (up to 102 uses)."""
     return (_domain_base + next(_domain_counter)) % _N_DOMAINS

@@ -584,7 +584,7 @@ def test_solver_from_params_limits():
 
     p = yaml.safe_load((config_dir() / "params.yaml").read_text())["ofc_node"]["ros__parameters"]
     s = C.solver_from_params(lambda n: p[n])
-    assert s.max_abs_zernike_nm == 20_000.0 and s.max_future_s == 60.0
+    assert s.max_abs_zernike_nm == 20_000.0 and s.max_future_s == 1.0
     p = {**p, "max_abs_zernike_nm": 0.0, "max_future_s": 0.0}
     s = C.solver_from_params(lambda n: p[n])
     assert s.max_abs_zernike_nm is None and s.max_future_s is None

@@ -184,10 +184,17 @@ def test_rotator_history():
     assert h.angle_deg(5)[0] is None
     assert h.add(10_000_000_000, np.deg2rad(10.0)) is None
     assert h.add(11_000_000_000, np.deg2rad(20.0)) is None
-    assert h.add(10_500_000_000, 0.0) is not None  # older than the last sample: ignored
+    # arriving late, it takes its place in stamp order (a sample stamped ahead must not hide
+    # the genuine ones); here it contradicts its neighbours, checked below
+    assert h.add(10_500_000_000, 0.0) is None
     assert h.add(12_000_000_000, float("nan")) is not None
     assert h.add(12_000_000_000, 1e10) is not None  # not an angle
     assert h.add(0, 0.1) is not None  # unset stamp
+    a, why = h.angle_deg(10_250_000_000)
+    assert a is None and "slewing" in why  # 10 -> 0 deg in 0.5 s
+    h = RotatorHistory(tolerance_s=1.0)
+    assert h.add(10_000_000_000, np.deg2rad(10.0)) is None
+    assert h.add(11_000_000_000, np.deg2rad(20.0)) is None
     a, _ = h.angle_deg(10_500_000_000)
     assert a == pytest.approx(15.0)
     a, _ = h.angle_deg(11_900_000_000)

@@ -37,12 +37,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SEC = 1_000_000_000
 
 
-def _start_ofc(domain: int, state_file: Path) -> subprocess.Popen:
+def _start_ofc(domain: int, state_file: Path | None) -> subprocess.Popen:
+    """ofc_node in a process of its own; ``state_file`` None: the shipped default."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     cmd = [sys.executable, "-m", "cwfs_ros.ros.launch", "node", "ofc_node", "--ros-args",
-           "-p", f"state_file:={state_file}", "-p", "rotator_angle_source:=fixed"]
+           "-p", "rotator_angle_source:=fixed"]
+    if state_file is not None:
+        cmd += ["-p", f"state_file:={state_file}"]
     return subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
 
@@ -159,3 +162,71 @@ def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tm
         assert "state_not_saved" in st.message
     finally:
         ofc.destroy_node()
+
+
+def test_the_shipped_default_keeps_the_state_across_a_restart(ros_domain, tmp_path,
+                                                             monkeypatch):
+    """ofc_node started as a user starts it, without naming a state file: the state is kept
+    under $ROS_HOME, so a visit applied before a SIGKILL is refused after the restart, and
+    ~/reset clears the file."""
+    from std_srvs.srv import Trigger
+
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
+    default_file = tmp_path / "ros_home" / "cwfs_ros" / "ofc_node.state.json"
+    sm = C.sensitivity_for_source("bundled")
+    intrinsic = C.intrinsic_vector_nm("r", sm.field_points_deg)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+    tester = rclpy.create_node("wavefront_node", context=ctx)
+    ex.add_node(tester)
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    reset = tester.create_client(Trigger, "ofc_node/reset")
+    got: dict[int, list[DofCorrection]] = {}
+    tester.create_subscription(
+        DofCorrection, "aos/ofc/dof_correction",
+        lambda m: got.setdefault(stamp_to_ns(m.header.stamp), []).append(m), OUTPUT_QOS)
+    th = spin_thread(ex)
+    th.start()
+    t0 = (time.time_ns() // SEC) * SEC - 400 * SEC
+
+    def visit(k: int) -> DofCorrection:
+        stamp = t0 + k * 40 * SEC
+        x = np.zeros(layout.N_DOF)
+        x[1] = 300.0 / k
+        m = WavefrontVector()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
+        m.zernikes_nm = intrinsic + sm.matrix_nm @ x
+        m.corner_valid = [True] * 4
+        m.corners = ["R00", "R04", "R40", "R44"]
+        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
+        m.n_pairs = [1] * 4
+        seen = len(got.get(stamp, []))
+        pub.publish(m)
+        wait_for(lambda: len(got.get(stamp, [])) > seen, 30, f"the correction of visit {k}")
+        return got[stamp][-1]
+
+    proc = _start_ofc(ros_domain, None)
+    try:
+        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to start")
+        assert visit(1).valid and visit(2).valid
+        assert json.loads(default_file.read_text())["n_steps"] == 2
+        kill_group(proc)
+        wait_for(lambda: pub.get_subscription_count() == 0, 30, "the old node to vanish")
+        proc = _start_ofc(ros_domain, None)
+        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to restart")
+        again = visit(2)
+        assert not again.valid and again.status.startswith("stale_visit"), again.status
+        assert visit(3).valid
+        assert reset.wait_for_service(timeout_sec=20)
+        fut = reset.call_async(Trigger.Request())
+        wait_for(fut.done, 10, "the reset")
+        assert fut.result().success, fut.result().message
+        saved = json.loads(default_file.read_text())
+        assert saved["n_steps"] == 0 and saved["last_stamp_ns"] is None, saved
+    finally:
+        kill_group(proc)
+        ex.shutdown()
+        tester.destroy_node()
+        rclpy.shutdown(context=ctx)
+        th.join(5)

@@ -16,7 +16,9 @@ in   ``/aos/ofc/dof_correction`` cwfs_msgs/DofCorrection: a valid, non-dry-run c
      added to the DoF state (used from the next rendered visit), only if its stamp is a visit
      this node published and has not corrected yet, and each |step| is within dof.yaml's
      max_step x ``correction_max_step_scale`` (``not_our_visit``, ``already_corrected``,
-     ``step_limit``): nothing else on the topic can move the telescope
+     ``step_limit``), and only while the topic has exactly ``correction_publishers``
+     publishers (``untrusted_source``, ERROR on /diagnostics): nothing else on the topic can
+     move the telescope
 out  ``/diagnostics``            state, visits rendered/skipped, corrections applied/ignored,
      other publishers on its image and truth topics
 srv  ``~/trigger``               std_srvs/Trigger: render one visit now (the only way when
@@ -54,11 +56,13 @@ from cwfs_ros.layout import CORNERS, CORRECTION_TOPIC, N_DOF, SIDES, TRUTH_TOPIC
 from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.ros.common import (
     DIAGNOSTICS_QOS,
+    ERROR,
     IMAGE_QOS,
     OK,
     OUTPUT_QOS,
     WARN,
     NodeBasics,
+    PublisherTrust,
     RejectionCounter,
     bundled_declarer,
     describe,
@@ -179,8 +183,11 @@ class CameraSimNode(NodeBasics, Node):
         # controller matches each visit's stamp against the angles it has received.
         self.pub_joint = self.create_publisher(JointState, JOINT_STATES_TOPIC, OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.trust = PublisherTrust(self, CORRECTION_TOPIC,
+                                    int(self._param("correction_publishers")))
         self.sub = self.create_subscription(DofCorrection, CORRECTION_TOPIC,
                                             self._on_correction, OUTPUT_QOS)
+        self.trust.attach(self.sub)
         self.srv = self.create_service(Trigger, "~/trigger", self._on_trigger)
         period = float(self._param("visit_period_s"))
         self._visit_timer = (self.create_timer(period, self._on_period) if period > 0 else None)
@@ -243,7 +250,11 @@ class CameraSimNode(NodeBasics, Node):
     def _on_correction(self, msg: DofCorrection) -> None:
         dof = np.asarray(msg.dof, dtype=np.float64).reshape(-1)
         reason = None
-        if not msg.valid:
+        untrusted = self.trust.problem()
+        if untrusted is not None:
+            reason = ("untrusted_source", f"correction {stamp_to_ns(msg.header.stamp)} ns not "
+                      f"applied: {untrusted}")
+        elif not msg.valid:
             reason = ("invalid", f"correction flagged invalid: {msg.status or 'no status'}")
         elif msg.dry_run:
             reason = ("dry_run", "correction is a dry run")
@@ -257,7 +268,15 @@ class CameraSimNode(NodeBasics, Node):
             with self._lock:
                 self.stats["corrections_ignored"] += 1
             self.ignored.add(*reason)
-            self.get_logger().info(f"ignored DofCorrection ({reason[1]})")
+            if reason[0] == "untrusted_source":
+                self.untrusted.add(*reason)
+            due, n = self.ignored.log_due(reason[0], 5.0)
+            text = (f"ignored DofCorrection ({reason[0]}: {reason[1]})"
+                    + (f" (+{n} more not logged)" if n else ""))
+            if due and reason[0] == "untrusted_source":
+                self.get_logger().error(text)
+            elif due:
+                self.get_logger().info(text)
             return
         noise = float(self._param("actuator_noise"))
         with self._lock:
@@ -281,6 +300,7 @@ class CameraSimNode(NodeBasics, Node):
         scale = float(self._param("correction_max_step_scale"))
         self._max_step = load_dof_spec().max_step * scale if scale > 0 else None
         self.foreign: list[str] = []
+        self.untrusted = RejectionCounter()
 
     def _note_published(self, stamp_ns: int) -> None:
         with self._lock:
@@ -483,7 +503,17 @@ class CameraSimNode(NodeBasics, Node):
                                                    for c in CORNERS for s in SIDES),
                                                  TRUTH_TOPIC])
         values.append(("foreign_publishers", "; ".join(self.foreign) or "none"))
-        if failed:
+        values += [("correction_publishers", f"{self.trust.publishers()} (expected "
+                                             f"{self.trust.expected or 'any'})"),
+                   ("untrusted_recent", self.trust.recent(60.0) or "none")]
+        n_pub = self.count_publishers(self.trust.topic)
+        if self.untrusted.recent(60.0):
+            level, message = ERROR, f"untrusted_source: {self.untrusted.last_message}"
+        elif n_pub > self.trust.expected > 0:
+            level, message = ERROR, (f"untrusted_source: {n_pub} publishers on "
+                                     f"{self.trust.topic}, expected {self.trust.expected}: "
+                                     f"{self.trust.publishers()}")
+        elif failed:
             level, message = WARN, self.last_status
         elif self.foreign:
             level, message = WARN, f"another publisher on a topic of this node: {self.foreign[0]}"
@@ -502,6 +532,7 @@ class CameraSimNode(NodeBasics, Node):
             th.join(timeout=1.0)  # a donut in progress finishes on its own (daemon thread)
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
+        self.trust.detach()  # its event handle before the subscription
         super().destroy_node()
 
 
@@ -607,3 +638,7 @@ def _declare_runtime_parameters(d: Declare) -> None:
         "Largest |step| of a correction applied, as a multiple of dof.yaml's max_step "
         "(ofc_node's own limit is max_step_scale x the same); beyond it the correction "
         "is ignored (step_limit); 0 = no limit.", fp_range=(0.0, 100.0), **ro))
+    d("correction_publishers", describe(
+        "Apply a DofCorrection only while its topic has exactly this many publishers "
+        "(ofc_node; whatever their names), else ignore it (untrusted_source, ERROR on "
+        "/diagnostics); 0 = any number.", int_range=(0, 64), **ro))

@@ -47,6 +47,9 @@ __all__ = [
     "ManagedNode",
     "NodeBasics",
     "OUTPUT_QOS",
+    "GUARD_PARAMETERS",
+    "ParameterAudit",
+    "PublisherTrust",
     "QosEventMonitor",
     "image_qos",
     "RejectionCounter",
@@ -111,6 +114,31 @@ def _bundled_params(path: str) -> dict[str, dict[str, Any]]:
     return {key.lstrip("/"): values for key, values in read_params_file(path).items()}
 
 
+# Safety guards: read-only, set at start only (config/params.yaml, --params, -p). The
+# parameter services take a change from any process on the domain without saying which, so a
+# guard that could be switched off at runtime would be no guard (docs/reliability.md, "Who may
+# change a parameter"). Every other parameter stays changeable at runtime, and each change is
+# logged and reported on /diagnostics (:class:`ParameterAudit`).
+GUARD_PARAMETERS: dict[str, frozenset[str]] = {
+    "wavefront_node": frozenset({"pairing_tolerance_s", "max_pending_mb", "max_future_s"}),
+    "ofc_node": frozenset({
+        "controller", "matrix_source", "allow_partial", "max_step_scale", "clip_to_range",
+        "max_condition", "max_abs_zernike_nm", "max_future_s", "max_inconsistency",
+        "min_visit_period_s", "refuse_repeats", "plausibility_margin_nm",
+        "plausibility_n_sigma", "min_corner_rms_nm", "rotator_angle_source",
+        "vector_publishers"}),
+    "camera_sim_node": frozenset({"correction_max_step_scale", "correction_publishers"}),
+}
+# Changed as part of routine operation (the seeing monitor sets the seeing every visit, the
+# simulator's rotator follows the visit plan): logged and listed, but no WARN.
+ROUTINE_PARAMETERS: dict[str, frozenset[str]] = {
+    "wavefront_node": frozenset({"seeing_fwhm_arcsec"}),
+    "camera_sim_node": frozenset({"rotator_angle_deg"}),
+}
+_GUARD_NOTE = (" Read-only: a safety guard, set at start only (params file or -p), never "
+               "through the parameter services.")
+
+
 def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescriptor], Any]:
     """``declare(name, descriptor)`` for ``node``, with the default value taken from the
     ``section`` of ``config/params.yaml``.
@@ -123,12 +151,19 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
     (``5`` as 5.0: declared as an integer, the parameter would refuse a later 2.5), and a
     value of the wrong kind (``1e6`` is a string to YAML 1.1) is a ConfigError naming the
     file and the key, as is a parameter the file lacks.
+
+    A parameter of :data:`GUARD_PARAMETERS` is declared read-only whatever its descriptor
+    says, and every declared parameter is watched by the node's :class:`ParameterAudit`.
     """
     from cwfs_ros.errors import ConfigError
     from cwfs_ros.ros.params import default_params_file
 
     path = str(default_params_file())
     values = _bundled_params(path).get(section, {})
+    guards = GUARD_PARAMETERS.get(section, frozenset())
+    # (a stand-in node without parameter callbacks, as a test may pass, is not audited)
+    audit = (ParameterAudit.of(node, ROUTINE_PARAMETERS.get(section, frozenset()))
+             if hasattr(node, "add_post_set_parameters_callback") else None)
 
     def declare(name: str, descriptor: ParameterDescriptor) -> Any:
         where = f"{path}: {section}.{name}"
@@ -143,9 +178,111 @@ def bundled_declarer(node: Any, section: str) -> Callable[[str, ParameterDescrip
             value = float(value)
         elif descriptor.integer_range and not (number and isinstance(value, int)):
             raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return node.declare_parameter(name, value, descriptor)
+        if name in guards and not descriptor.read_only:
+            descriptor.read_only = True
+            descriptor.description += _GUARD_NOTE
+        declared = node.declare_parameter(name, value, descriptor)
+        if audit is not None and declared is not None:
+            audit.watch(name, declared.value)
+        return declared
 
     return declare
+
+
+class ParameterAudit:
+    """Every runtime change of a node's parameters, logged and reported on /diagnostics.
+
+    The parameter services accept a change from any process on the domain and do not say
+    which one sent it; the node can still say what changed. Each change is logged (WARN, INFO
+    for the node's routine parameters) with the old and new value, counted, and, for
+    :attr:`warn_s` seconds after it, raises the node's /diagnostics status to WARN naming the
+    parameter and both values (:meth:`annotate`, applied by
+    :meth:`NodeBasics.publish_diagnostics`). Safety guards are read-only instead
+    (:data:`GUARD_PARAMETERS`).
+    """
+
+    warn_s = 60.0
+
+    def __init__(self, node: Any, routine: frozenset[str] = frozenset()) -> None:
+        self._node = node
+        self._routine = routine
+        self._lock = threading.Lock()
+        self._known: dict[str, Any] = {}
+        self.changes = 0
+        self.last_change = ""
+        self._last_warn: tuple[float, str] | None = None
+        node.add_post_set_parameters_callback(self._after_set)
+
+    @classmethod
+    def of(cls, node: Any, routine: frozenset[str] = frozenset()) -> ParameterAudit:
+        """The node's audit, made on first use."""
+        audit = getattr(node, "_parameter_audit", None)
+        if audit is None:
+            audit = cls(node, routine)
+            node._parameter_audit = audit
+        return audit
+
+    def watch(self, name: str, value: Any) -> None:
+        """Start watching a declared parameter at its starting value."""
+        with self._lock:
+            self._known[name] = value
+
+    def _after_set(self, params: Sequence[Any]) -> None:
+        for p in params:
+            with self._lock:
+                if p.name not in self._known or _same_value(self._known[p.name], p.value):
+                    continue  # a declaration, or a set to the value it had
+                old, self._known[p.name] = self._known[p.name], p.value
+                text = (f"parameter {p.name} changed at runtime: {_show_value(old)} -> "
+                        f"{_show_value(p.value, old)}")
+                self.changes += 1
+                self.last_change = text
+                if p.name not in self._routine:
+                    self._last_warn = (time.monotonic(), text)
+            # two call sites: rclpy refuses one call site logging at two severities
+            if p.name in self._routine:
+                self._node.get_logger().info(text)
+            else:
+                self._node.get_logger().warning(text)
+
+    def warning(self) -> str | None:
+        """The latest non-routine change if it is less than :attr:`warn_s` old, else None."""
+        with self._lock:
+            w = self._last_warn
+        return w[1] if w is not None and time.monotonic() - w[0] < self.warn_s else None
+
+    def annotate(self, status: DiagnosticStatus) -> DiagnosticStatus:
+        """Add the counts to ``status``; raise an OK status to WARN after a recent change."""
+        with self._lock:
+            status.values += [KeyValue(key="parameter_changes", value=str(self.changes)),
+                              KeyValue(key="last_parameter_change",
+                                       value=self.last_change or "none")]
+        w = self.warning()
+        if w is not None and status.level == OK:
+            status.level, status.message = WARN, w
+        return status
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    try:
+        return bool(a == b) if not hasattr(a, "__len__") or isinstance(a, str) else \
+            list(a) == list(b)
+    except Exception:  # noqa: BLE001 - values of different kinds are different
+        return False
+
+
+def _show_value(value: Any, old: Any = None) -> str:
+    """A parameter value for a log line: short; for a list, the entries that changed."""
+    if isinstance(value, str):
+        return repr(value if len(value) <= 80 else value[:77] + "...")
+    if hasattr(value, "__len__"):
+        new = list(value)
+        if old is not None and hasattr(old, "__len__") and len(old) == len(new):
+            diff = [f"[{i}] {old[i]!r}->{v!r}" for i, v in enumerate(new) if old[i] != v]
+            return f"{len(new)} values, changed {', '.join(diff[:8])}" + (
+                f" (+{len(diff) - 8} more)" if len(diff) > 8 else "")
+        return f"{len(new)} values"
+    return repr(value)
 
 
 def result(ok: bool, reason: str = "") -> SetParametersResult:
@@ -233,14 +370,23 @@ def string_param_problem(name: str, value: object,
     return None
 
 
+def _endpoint(info: Any) -> str:
+    """``/ns/node (gid 0f1e...)`` of a TopicEndpointInfo."""
+    ns = str(info.node_namespace).rstrip("/")
+    gid = bytes(info.endpoint_gid).hex().rstrip("0")[:32] or "0"
+    return f"{ns}/{info.node_name} (gid {gid})"
+
+
 def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
-    """``"<topic>: <namespace>/<node>"`` for every publisher on ``topics`` (this node's own
-    outputs) that is not ``node`` itself.
+    """``"<topic>: <namespace>/<node> (gid ...)"`` for every publisher endpoint on ``topics``
+    (this node's own outputs) that is not one of ``node``'s own publishers.
 
     Without DDS Security nothing stops another process from publishing on a topic this node
     owns; consumers cannot tell its messages from the node's, so the node names such
-    publishers on /diagnostics. ``topics`` are names as the node created them (resolved
-    here).
+    publishers on /diagnostics. A node name proves nothing (any process may call its node
+    ``ofc_node``): the endpoints named like this node are counted against the publishers it
+    created on the topic, and any beyond them are reported too, with their endpoint gids.
+    ``topics`` are names as the node created them (resolved here).
     """
     me = (node.get_namespace().rstrip("/"), node.get_name())
     out = []
@@ -248,13 +394,165 @@ def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
         try:
             name = node.resolve_topic_name(t)
             infos = node.get_publishers_info_by_topic(name)
+            own = sum(1 for p in node.publishers if p.topic_name == name)
         except Exception:  # noqa: BLE001 - a graph query must not break diagnostics
             continue
-        for info in infos:
-            who = (str(info.node_namespace).rstrip("/"), str(info.node_name))
-            if who != me:
-                out.append(f"{name}: {who[0]}/{who[1]}")
+        named_me = [i for i in infos
+                    if (str(i.node_namespace).rstrip("/"), str(i.node_name)) == me]
+        out += [f"{name}: {_endpoint(i)}" for i in infos if i not in named_me]
+        if len(named_me) > own:
+            out.append(f"{name}: {len(named_me)} endpoints named {me[0]}/{me[1]} for this "
+                       f"node's {own} (another process under its name: "
+                       f"{', '.join(_endpoint(i) for i in named_me)})")
     return sorted(out)
+
+
+class PublisherTrust:
+    """Whether a consumer may act on what arrives on its input topic: only while the topic
+    has exactly the publishers it expects.
+
+    rclpy's message info names no publisher, so a message cannot be traced to its sender.
+    What the node can know is the topic's writers: DDS delivers no sample from a writer
+    before discovery has matched it with this reader, and the reader's matched status counts
+    every writer that ever matched (``total_count``), however briefly. A message is acted on
+    only while the reader has exactly ``expected`` matched writers, the graph lists exactly
+    that many publisher endpoints (whatever their node names), and no writer has matched
+    since the publishers were last trusted that is not still listed: a writer that matched,
+    sent and left before the message was taken is still counted (the writers matched ever,
+    against the endpoint gids the graph lists now), while a restarted producer, whose new
+    endpoint is listed in place of the old one, is trusted at once (the receiver cannot tell a
+    restart from a replacement anyway). A writer that came and went is forgotten once the
+    count has been ``expected`` for :attr:`settle_s`. Anything else refuses the message
+    (``untrusted_source``). The matched status is read
+    synchronously from an event handle of the subscription's own (no executor involved); a
+    crashed publisher stays matched until its discovery lease expires
+    (config/fastdds_profile.xml). ``expected`` 0 turns the check off. The queries read the
+    local graph cache and the reader's status: a few microseconds each (docs/reliability.md).
+    """
+
+    settle_s = 2.0
+
+    def __init__(self, node: Any, topic: str, expected: int) -> None:
+        self._node = node
+        self.topic = node.resolve_topic_name(topic)
+        self.expected = int(expected)
+        self.sub: Any = None
+        self._event: Any = None
+        self._lock = threading.Lock()
+        self._baseline: int | None = None  # writers ever matched when last trusted
+        self._baseline_gids: set[bytes] = set()  # their endpoints then
+        self._seen: tuple[int, int] | None = None  # (ever matched, matched) at the last poll
+        self._changed_at = -1e9
+        self._what = ""
+
+    def attach(self, sub: Any) -> None:
+        """Watch ``sub`` (the subscription of :attr:`topic`)."""
+        from rclpy.event_handler import QoSSubscriptionEventType
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        self.sub = sub
+        with sub.handle:
+            self._event = _rclpy.EventHandle(
+                sub.handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MATCHED)
+
+    def detach(self) -> None:
+        """Release the event handle (before the subscription is destroyed)."""
+        event, self._event, self.sub = self._event, None, None
+        if event is not None:
+            event.destroy_when_not_in_use()
+
+    def _matched(self) -> tuple[int, int] | None:
+        """(writers ever matched, writers matched now), read now."""
+        event = self._event
+        if event is None:
+            return None
+        with event:
+            status = event.take_event()
+        return None if status is None else (int(status.total_count),
+                                            int(status.current_count))
+
+    def _poll(self) -> tuple[int, int] | None:
+        """Read the matched status and note a change of it."""
+        seen = self._matched()
+        if seen is None:
+            return None
+        now = time.monotonic()
+        with self._lock:
+            first = self._seen is None
+            changed = seen != self._seen and not (first and seen[0] == 0)
+            if changed and self._baseline is None and seen[0] == seen[1] == self.expected:
+                self._trust_now(seen[0])  # the first writers: none came and went
+            elif changed:
+                self._changed_at = now
+                self._what = (f"the writers matched on {self.topic} changed "
+                              f"({self._seen[1] if self._seen else 0} -> {seen[1]} now, "
+                              f"{seen[0]} ever)")
+            elif seen[1] == self.expected and seen[0] != self._baseline and \
+                    now - self._changed_at >= self.settle_s:
+                self._trust_now(seen[0])
+            self._seen = seen
+        return seen
+
+    def _gids(self) -> set[bytes]:
+        return {bytes(i.endpoint_gid)
+                for i in self._node.get_publishers_info_by_topic(self.topic)}
+
+    def _trust_now(self, total: int) -> None:
+        """Take the writers matched now as the trusted ones (under the lock)."""
+        self._baseline = total
+        self._baseline_gids = self._gids()
+
+    def _replaced_only(self, total: int) -> bool:
+        """Whether every writer matched since the last trust is still listed (a restart or a
+        replacement, not one that came and went); if so, trust them now."""
+        with self._lock:
+            if self._baseline is None:
+                return False
+            new = self._gids() - self._baseline_gids
+            if total - self._baseline <= len(new):
+                self._trust_now(total)
+                return True
+            return False
+
+    def problem(self) -> str | None:
+        """Why a message taken now must not be acted on, or None."""
+        if self.expected <= 0:
+            return None
+        try:
+            seen = self._poll()
+            n_graph = int(self._node.count_publishers(self.topic))
+        except Exception as exc:  # noqa: BLE001 - an unanswered query is no trust
+            return f"the publishers of {self.topic} cannot be read: {exc}"
+        n_matched = n_graph if seen is None else seen[1]
+        if n_graph != self.expected or n_matched != self.expected:
+            return (f"{self.topic} has {n_graph} publisher(s) ({n_matched} matched), "
+                    f"expected exactly {self.expected}: {self.publishers()}")
+        with self._lock:
+            baseline, age, what = self._baseline, time.monotonic() - self._changed_at, \
+                self._what
+        if seen is not None and seen[0] != baseline and not self._replaced_only(seen[0]):
+            return (f"{what} {age:.1f} s ago: a writer matched and left since the publishers "
+                    f"were last trusted; trusted again once they have been exactly "
+                    f"{self.expected} for {self.settle_s:g} s (now: {self.publishers()})")
+        return None
+
+    def recent(self, window_s: float) -> str | None:
+        """The last change of the matched writers if within ``window_s``, else None."""
+        try:
+            self._poll()
+        except Exception:  # noqa: BLE001 - diagnostics go on
+            pass
+        with self._lock:
+            age, what = time.monotonic() - self._changed_at, self._what
+        return f"{what} {age:.0f} s ago" if age < window_s else None
+
+    def publishers(self) -> str:
+        """The topic's publisher endpoints, for a message."""
+        try:
+            infos = self._node.get_publishers_info_by_topic(self.topic)
+        except Exception:  # noqa: BLE001
+            return "unknown"
+        return ", ".join(_endpoint(i) for i in infos) or "none"
 
 
 class SequenceGaps:
@@ -416,9 +714,15 @@ class NodeBasics:
         return self.get_parameter(name).value
 
     def publish_diagnostics(self) -> None:
+        """Publish :meth:`diagnostics`, with the parameter changes of
+        :class:`ParameterAudit` added."""
         try:
+            status = self.diagnostics()
+            audit = getattr(self, "_parameter_audit", None)
+            if audit is not None:
+                status = audit.annotate(status)
             self.pub_diag.publish(diagnostics_array(self.get_clock().now().to_msg(),
-                                                    [self.diagnostics()]))
+                                                    [status]))
         except Exception as exc:  # noqa: BLE001 - a diagnostics failure must not stop a node
             self.get_logger().error(f"diagnostics failed: {exc}")
 

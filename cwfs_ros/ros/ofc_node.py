@@ -20,9 +20,10 @@ uncertainties (directions the corners barely see are dropped and reported), and 
 correction that minimises the predicted wavefront error over the whole science field within
 the step limits and strokes. ``controller: pid`` is ts_ofc's scheme
 (:class:`cwfs_ros.ofc.control.OFCSolver`: range-fwhm weights, truncated SVD, PI gains), kept
-for comparison; it has no rotator model and refuses a rotated camera. With ``state_file`` the
-state is written atomically after every applied visit and read back at start, so a
-restarted node continues and refuses visits it already applied.
+for comparison; it has no rotator model and refuses a rotated camera. The state is written
+atomically to ``state_file`` after every applied visit and read back at start (by default
+under ``$ROS_HOME``, :func:`cwfs_ros.ros.params.state_file_path`), so a restarted node
+continues and refuses visits it already applied.
 
 The DoF convention is batoid_rubin's (OCS), the one of
 ``DofCorrection``; both matrix sources are converted to it. A vector with an invalid corner is
@@ -43,7 +44,9 @@ so that a flood is not passed on; a valid corner beyond the physical bounds of
 (``implausible_uncertainty``), or two corners that are one estimate (``copied_corner``) is
 refused like any other refusal. Vectors the subscription queue
 dropped are counted from the publishers' sequence numbers; other publishers on the
-correction topic are named on /diagnostics.
+correction topic are named on /diagnostics. A vector is acted on only while its topic has
+exactly ``vector_publishers`` publishers (:class:`~cwfs_ros.ros.common.PublisherTrust`; else
+``untrusted_source``, no correction, ERROR on /diagnostics).
 """
 
 from __future__ import annotations
@@ -82,6 +85,7 @@ from cwfs_ros.ros.common import (
     OUTPUT_QOS,
     WARN,
     ManagedNode,
+    PublisherTrust,
     RejectionCounter,
     SequenceGaps,
     bundled_declarer,
@@ -93,6 +97,7 @@ from cwfs_ros.ros.common import (
     string_param_problem,
 )
 from cwfs_ros.ros.convert import dof_correction_msg, vector_from_msg
+from cwfs_ros.ros.params import state_file_path
 from cwfs_ros.runtime.pipeline import stamp_problem
 
 __all__ = ["OfcNode", "build_solver", "main"]
@@ -148,19 +153,23 @@ class OfcNode(ManagedNode):
             self.refused = RejectionCounter()
             self.stats = {"vectors": 0, "corrections_valid": 0, "corrections_refused": 0,
                           "resets": 0, "rotator_samples": 0, "rotator_samples_ignored": 0,
-                          "state_saves_failed": 0, "vectors_inactive": 0}
+                          "state_saves_failed": 0, "vectors_inactive": 0,
+                          "vectors_untrusted": 0}
             self.last_status = "none yet"
             self.last_ms = float("nan")
             self.last_result: C.OFCResult | None = None
             self.rotator = RotatorHistory(float(self._param("rotator_tolerance_s")))
-            self.state_file = str(self._param("state_file"))
+            self.state_file = state_file_path(str(self._param("state_file")),
+                                              self.get_namespace(), self.get_name())
             self.state_problem: Problem | None = None
             self.save_problem: Problem | None = None
             self._load_state()
         # A managed publisher: whatever path reaches it, nothing goes out unless active.
         self.pub = self.create_lifecycle_publisher(DofCorrection, CORRECTION_TOPIC, OUTPUT_QOS)
+        self.trust = PublisherTrust(self, VECTOR_TOPIC, int(self._param("vector_publishers")))
         self.sub = self.create_subscription(WavefrontVector, VECTOR_TOPIC,
                                             self._on_vector_info, OUTPUT_QOS)
+        self.trust.attach(self.sub)
         # Joint states come at the rotator's rate: a deeper queue than the outputs', so that a
         # burst around a visit is not lost; reliable, as robot_state_publisher's are.
         self.sub_joints = self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
@@ -176,6 +185,9 @@ class OfcNode(ManagedNode):
     def _release_resources(self) -> None:
         """cleanup / shutdown: the topics, the service and the controller (its state is in
         the state file after every applied visit, and read again on configure)."""
+        trust = getattr(self, "trust", None)
+        if trust is not None:
+            trust.detach()  # its event handle before the subscription
         for sub in (self.sub, self.sub_joints):
             if sub is not None:
                 self.destroy_subscription(sub)
@@ -281,7 +293,10 @@ class OfcNode(ManagedNode):
             read_only=True, fp_range=(0.001, 3600.0)))
         d("state_file", describe(
             "File the controller state is written to after every applied visit and read at "
-            "start ('' = none); ~/reset clears it.", read_only=True))
+            "start; 'auto' = $ROS_HOME/cwfs_ros/<namespace>/<node name>.state.json "
+            "($ROS_HOME: ~/.ros), so that a restarted node continues and refuses visits it "
+            "already applied; '' = none (a restart forgets them); ~/reset clears it.",
+            read_only=True))
 
     def _validate_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
         new = {p.name: p.value for p in params}
@@ -340,6 +355,7 @@ class OfcNode(ManagedNode):
         self._bounds: P.PlausibilityBounds | None = None
         self._plausibility_bounds()  # now, so that the first visit is fast
         self.foreign: list[str] = []
+        self.untrusted = RejectionCounter()
 
     def _on_vector_info(self, msg: WavefrontVector, info) -> None:
         """The subscription's callback: count what the queue dropped, then handle it (or,
@@ -354,7 +370,24 @@ class OfcNode(ManagedNode):
         if not self.is_active:
             self._ignore_inactive(msg)
             return
+        why = self.trust.problem()
+        if why is not None:
+            self._refuse_untrusted(msg, why)
+            return
         self._on_vector(msg)
+
+    def _refuse_untrusted(self, msg: WavefrontVector, why: str) -> None:
+        """A vector whose topic has other publishers than expected: not integrated, no
+        correction published (an answer per message would pass an impostor's flood on),
+        counted, logged (throttled) and ERROR on /diagnostics for a minute."""
+        text = (f"visit {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}: not "
+                f"integrated, no correction published: untrusted_source: {why}")
+        with self._lock:
+            self.stats["vectors"] += 1
+            self.stats["vectors_untrusted"] += 1
+        self.untrusted.add("untrusted_source", text)
+        self.guard_counts.add("untrusted_source", text)
+        self._log_guard("untrusted_source", text)
 
     def _ignore_inactive(self, msg: WavefrontVector) -> None:
         state = self.lifecycle_state
@@ -431,7 +464,10 @@ class OfcNode(ManagedNode):
         values += [("queue_dropped", str(self.queue_gaps.dropped)
                     + ("" if n_pub <= 1 else f" (estimate: {n_pub} publishers)")),
                    ("min_visit_period_s", str(self.guard.min_period_s)),
-                   ("foreign_publishers", "; ".join(self.foreign) or "none")]
+                   ("foreign_publishers", "; ".join(self.foreign) or "none"),
+                   ("vector_publishers", f"{self.trust.publishers()} (expected "
+                                         f"{self.trust.expected or 'any'})"),
+                   ("untrusted_recent", self.trust.recent(60.0) or "none")]
         return values
 
     # ------------------------------------------------------------------ control
@@ -462,15 +498,19 @@ class OfcNode(ManagedNode):
             with self._lock:
                 self.stats["vectors"] += 1
                 dry = self.dry_run
+                now = self.get_clock().now().nanoseconds
                 if problem is None:
                     problem = self.state_problem
+                if problem is None:
+                    # stale or ahead of the clock: said before the rotator is asked (a visit
+                    # stamped ahead has no rotator sample either, and that is not its fault)
+                    problem = self.solver._stamp_problem(stamp, now)
                 angle, why = rotator_angle_for(self._param, self.rotator, stamp)
                 before = state_record(self.solver) if self.state_file else None
                 out = self._refusal(problem) if problem is not None else step_controller(
                     self.solver, z, valid,
                     uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
-                    angle_deg=angle, angle_why=why, stamp_ns=stamp,
-                    now_ns=self.get_clock().now().nanoseconds, dry_run=dry)
+                    angle_deg=angle, angle_why=why, stamp_ns=stamp, now_ns=now, dry_run=dry)
                 if out.valid and not dry:
                     out = self._persist(out, before)
                 self._log_observability_change(out)
@@ -649,8 +689,15 @@ class OfcNode(ManagedNode):
                       ("last_step_ms", f"{self.last_ms:.2f}")]
         values += self.refused.key_values()
         values += self._guard_values()
+        n_pub = self.count_publishers(self.trust.topic)
         if self.state_problem is not None or self.save_problem is not None:
             level, message = ERROR, str(self.state_problem or self.save_problem)
+        elif self.untrusted.recent(60.0):
+            level, message = ERROR, f"refused a vector: {self.untrusted.last_message}"
+        elif n_pub > self.trust.expected > 0:
+            level, message = ERROR, (f"untrusted_source: {n_pub} publishers on "
+                                     f"{self.trust.topic}, expected {self.trust.expected}: "
+                                     f"{self.trust.publishers()}")
         elif lifecycle != "active":
             level, message = WARN, f"{lifecycle}: {self._inactive_effect()}"
         elif self.foreign:
@@ -714,6 +761,10 @@ def _declare_guard_parameters(d) -> None:
     d("log_throttle_s", describe(
         "At most one log line per guard reason per this period [s] (all are counted); "
         "0 = a line each.", fp_range=(0.0, 3600.0)))
+    d("vector_publishers", describe(
+        "Act on a WavefrontVector only while its topic has exactly this many publishers "
+        "(whatever their names; else untrusted_source: not integrated, ERROR on "
+        "/diagnostics); 0 = any number.", int_range=(0, 64)))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -20,13 +20,35 @@ from typing import Any
 from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ParamsFileError
 
-__all__ = ["check_declared", "check_overrides", "close_match", "default_params_file", "flatten",
-           "read_params_file", "yaml_kind"]
+__all__ = ["AUTO_STATE_FILE", "check_declared", "check_overrides", "close_match",
+           "default_params_file", "flatten", "read_params_file", "ros_home", "state_file_path",
+           "yaml_kind"]
+
+#: ``state_file`` value that means the node's own file under :func:`ros_home`.
+AUTO_STATE_FILE = "auto"
 
 
 def default_params_file() -> Path:
     """The parameters every node starts from: ``config/params.yaml``."""
     return config_dir() / "params.yaml"
+
+
+def ros_home() -> Path:
+    """``$ROS_HOME``, else ``~/.ros``: where ROS 2 keeps a node's files (logs, state)."""
+    import os
+
+    home = os.environ.get("ROS_HOME", "")
+    return Path(home).expanduser() if home else Path.home() / ".ros"
+
+
+def state_file_path(value: str, namespace: str, node_name: str) -> str:
+    """The file a node's ``state_file`` parameter names: ``auto`` is
+    ``$ROS_HOME/cwfs_ros/<namespace>/<node name>.state.json`` (one per node, so that two
+    nodes never share one), ``""`` none, anything else that path (``~`` expanded)."""
+    if value == AUTO_STATE_FILE:
+        parts = [q for q in namespace.split("/") if q]
+        return str(ros_home().joinpath("cwfs_ros", *parts, f"{node_name}.state.json"))
+    return str(Path(value).expanduser()) if value else ""
 
 
 def flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
