@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+from cwfs_ros.errors import ConfigError
 from cwfs_ros.ofc import control as C
 
 rclpy = pytest.importorskip("rclpy")
@@ -124,12 +125,13 @@ def test_node_refuses_what_no_measurement_is(ros_context, spin):
 
 
 def test_uncertainty_limits_must_leave_room(ros_context, spin):
+    """The limits are read-only guards; a node started with limits that would refuse every
+    reported one-sigma does not configure."""
     ofc = spin(OfcNode(context=ros_context))
-    res = ofc.set_parameters_atomically([Parameter("min_uncertainty_nm", value=900.0),
-                                         Parameter("max_uncertainty_nm", value=500.0)])
-    assert not res.successful and "min_uncertainty_nm" in res.reason
     (res,) = ofc.set_parameters([Parameter("max_uncertainty_nm", value=500.0)])
-    assert res.successful
-    (res,) = ofc.set_parameters([Parameter("min_uncertainty_nm", value=900.0)])
-    assert not res.successful and "below" in res.reason
-    assert ofc.get_parameter("min_uncertainty_nm").value == 0.001
+    assert not res.successful and "read-only" in res.reason
+    assert ofc.get_parameter("max_uncertainty_nm").value == 2000.0
+    with pytest.raises(ConfigError, match="min_uncertainty_nm"):
+        OfcNode(context=ros_context, parameter_overrides=[
+            Parameter("min_uncertainty_nm", value=900.0),
+            Parameter("max_uncertainty_nm", value=500.0)])

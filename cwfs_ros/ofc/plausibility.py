@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cwfs_ros import layout
+from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import CORNERS, N_ZK
 from cwfs_ros.ofc import control as C
 
@@ -229,6 +230,12 @@ class Claims:
     min_uncertainty_nm: float = 1e-3
     max_uncertainty_nm: float = 2000.0
     max_pairs: int = 4
+
+    def __post_init__(self) -> None:
+        if not self.min_uncertainty_nm < self.max_uncertainty_nm:
+            raise ConfigError(f"min_uncertainty_nm ({self.min_uncertainty_nm:g}) must be below "
+                              f"max_uncertainty_nm ({self.max_uncertainty_nm:g}): else every "
+                              "reported one-sigma is refused")
 
     def problem(self, name: str, uc: np.ndarray | None, n_pairs: int | None) -> Verdict | None:
         """Why corner ``name``'s uncertainty (19 terms, 0 = not reported) or pair count is

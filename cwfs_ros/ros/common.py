@@ -120,12 +120,14 @@ def _bundled_params(path: str) -> dict[str, dict[str, Any]]:
 # change a parameter"). Every other parameter stays changeable at runtime, and each change is
 # logged and reported on /diagnostics (:class:`ParameterAudit`).
 GUARD_PARAMETERS: dict[str, frozenset[str]] = {
-    "wavefront_node": frozenset({"pairing_tolerance_s", "max_pending_mb", "max_future_s"}),
+    "wavefront_node": frozenset({"pairing_tolerance_s", "max_pending_mb", "max_future_s",
+                                 "max_image_publishers"}),
     "ofc_node": frozenset({
         "controller", "matrix_source", "allow_partial", "max_step_scale", "clip_to_range",
         "max_condition", "max_abs_zernike_nm", "max_future_s", "max_inconsistency",
         "min_visit_period_s", "refuse_repeats", "plausibility_margin_nm",
-        "plausibility_n_sigma", "min_corner_rms_nm", "rotator_angle_source",
+        "plausibility_n_sigma", "min_corner_rms_nm", "repeat_fraction", "repeat_floor_nm",
+        "min_uncertainty_nm", "max_uncertainty_nm", "max_pairs", "rotator_angle_source",
         "vector_publishers"}),
     "camera_sim_node": frozenset({"correction_max_step_scale", "correction_publishers"}),
 }

@@ -146,6 +146,7 @@ class OfcNode(ManagedNode):
         """configure: the controller, the input guards, the state file and the topics."""
         with self._lock:
             self.solver = build_solver(self._param)
+            self._claims()  # ConfigError for limits that would refuse every measurement
             self.dry_run = bool(self._param("dry_run"))
             self.frame_id = str(self._param("frame_id"))
             self._warm(self.solver)
@@ -307,12 +308,6 @@ class OfcNode(ManagedNode):
             bad = string_param_problem(n, v)
             if bad is not None:
                 return result(False, bad)
-        lo = new.get("min_uncertainty_nm", self._param("min_uncertainty_nm"))
-        hi = new.get("max_uncertainty_nm", self._param("max_uncertainty_nm"))
-        if lo >= hi:
-            return result(False, f"min_uncertainty_nm ({lo:g}) must be below "
-                          f"max_uncertainty_nm ({hi:g}): else every reported one-sigma is "
-                          "refused")
         if not any(n in new for n in _SOLVER_PARAMS):
             return result(True)
 
