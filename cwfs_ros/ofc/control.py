@@ -1071,7 +1071,7 @@ class OFCSolver:
         return [f"field{i}" for i in range(self.n_fields)]
 
     # ---------------------------------------------------------------- control step
-    def _stamp_problem(self, stamp_ns: int | None, now_ns: int | None) -> Problem | None:
+    def visit_stamp_problem(self, stamp_ns: int | None, now_ns: int | None) -> Problem | None:
         """Why a visit of this stamp must not be applied, or None."""
         if stamp_ns is None:
             return None
@@ -1125,7 +1125,7 @@ class OFCSolver:
         changes.
         """
         t0 = time.perf_counter()
-        problem = self._stamp_problem(stamp_ns, now_ns)
+        problem = self.visit_stamp_problem(stamp_ns, now_ns)
         est = (self.estimate(measured_nm, corner_valid) if problem is None else
                Estimate(np.zeros(N_DOF), False, problem.status,
                         np.full(self.n_fields * N_ZK, np.nan), float("nan"), float("nan"), 0,

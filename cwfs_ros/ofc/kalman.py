@@ -251,7 +251,7 @@ class KalmanOFC(C.OFCSolver):
         valid, ``dof`` is zero and the state is unchanged.
         """
         t0 = time.perf_counter()
-        problem = self._stamp_problem(stamp_ns, now_ns)
+        problem = self.visit_stamp_problem(stamp_ns, now_ns)
         if problem is None and not np.isfinite(rotator_angle_deg):
             problem = Problem("bad_rotator_angle", f"{rotator_angle_deg!r}")
         if problem is not None:

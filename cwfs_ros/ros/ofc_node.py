@@ -499,7 +499,7 @@ class OfcNode(ManagedNode):
                 if problem is None:
                     # stale or ahead of the clock: said before the rotator is asked (a visit
                     # stamped ahead has no rotator sample either, and that is not its fault)
-                    problem = self.solver._stamp_problem(stamp, now)
+                    problem = self.solver.visit_stamp_problem(stamp, now)
                 angle, why = rotator_angle_for(self._param, self.rotator, stamp)
                 before = state_record(self.solver) if self.state_file else None
                 out = self._refusal(problem) if problem is not None else step_controller(
