@@ -337,6 +337,41 @@ def test_a_second_publisher_on_an_image_topic_is_named_and_its_images_refused(gr
         other.destroy_node()
 
 
+def test_a_camera_that_sends_one_visit_and_leaves_is_refused(graph):
+    """An impostor camera matches, waits past the settle time, publishes both images of its
+    own visit and leaves at once: the topic is back to one publisher when the images are
+    taken, but the writers ever matched still count it, so the corner is untrusted_source;
+    the genuine camera's next visit is taken once the topic has settled."""
+    from conftest import wait_for
+
+    wf, cam, pub, corner, vector = graph()
+    other = rclpy.create_node("camera", context=cam.context)
+    try:
+        imps = {side: other.create_publisher(Image, f"aos/wfs/R00/{side}/image", IMAGE_QOS)
+                for side in ("intra", "extra")}
+        wait_for(lambda: all(p.get_subscription_count() for p in imps.values()), 10,
+                 "discovery")
+        time.sleep(2.5)
+        h = T + 7 * SEC
+        for side, p in imps.items():
+            p.publish(image_msg(DONUT, h))
+        for p in imps.values():
+            other.destroy_publisher(p)
+    finally:
+        other.destroy_node()
+    wait_for(lambda: of(corner, h), 20, "the impostor visit's result")
+    (m,) = of(corner, h)
+    assert not m.valid and "untrusted_source" in m.status, m.status
+    assert not [v for v in of(vector, h) if v.valid]
+    g = T + 8 * SEC
+    wait_for(lambda: wf._image_trust[("R00", "intra")].problem() is None
+             and wf._image_trust[("R00", "extra")].problem() is None, 15, "trust back")
+    for side in ("intra", "extra"):
+        pub[side].publish(image_msg(DONUT, g))
+    wait_for(lambda: of(corner, g), 20, "the genuine corner")
+    assert of(corner, g)[0].valid, of(corner, g)[0].status
+
+
 def test_several_publishers_are_taken_when_allowed_and_their_drops_a_lower_bound(graph):
     from conftest import wait_for
 

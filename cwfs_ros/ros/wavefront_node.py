@@ -19,8 +19,9 @@ out  ``/diagnostics``                    state, counts of rejected inputs and th
 Input guards (docs/reliability.md): an image stamped 0, or more than ``max_future_s`` ahead
 of the node's clock, whose pair could not fit within ``max_pending_mb``, or whose
 ``header.frame_id`` names another corner or side than its topic's, is refused (``no_stamp``,
-``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic while
-more than ``max_image_publishers`` publishers are matched on it (``untrusted_source``; every
+``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic unless it
+has exactly ``max_image_publishers`` publishers, now and since they were last trusted
+(``untrusted_source``, :class:`~cwfs_ros.ros.common.PublisherTrust`; every
 image topic with several publishers is named on /diagnostics); images waiting for their
 partners hold at most ``max_pending_mb`` (the oldest is dropped first, ``memory_limit``);
 two different images for one corner, side and stamp make that corner invalid
@@ -62,6 +63,7 @@ from cwfs_ros.ros.common import (
     OUTPUT_QOS,
     WARN,
     ManagedNode,
+    PublisherTrust,
     QosEventMonitor,
     RejectionCounter,
     SequenceGaps,
@@ -129,6 +131,7 @@ class WavefrontNode(ManagedNode):
         self.pool: CornerPool | None = None
         self._subs: list = []
         self._image_subs: dict = {}  # (corner, side) -> its image subscription
+        self._image_trust: dict = {}  # (corner, side) -> PublisherTrust of its topic
         self.pub_corner: dict = {}
         self.pub_vector = None
         self._expiry_timer = None
@@ -224,6 +227,7 @@ class WavefrontNode(ManagedNode):
                            if self.assemble else None)
         self._subs = []
         self._image_subs = {}
+        self._image_trust = {}
         self.qos_events = QosEventMonitor(self.get_logger())
         for c in self.corners:
             for s in SIDES:
@@ -236,6 +240,9 @@ class WavefrontNode(ManagedNode):
                     event_callbacks=self.qos_events.subscription_callbacks(topic))
                 self._subs.append(sub)
                 self._image_subs[(c, s)] = sub
+                trust = PublisherTrust(self, topic, int(self._param("max_image_publishers")))
+                trust.attach(sub)
+                self._image_trust[(c, s)] = trust
         if self.assemble:
             for c in CORNERS:
                 if c not in self.corners:
@@ -247,6 +254,9 @@ class WavefrontNode(ManagedNode):
 
     def _release_resources(self) -> None:
         """cleanup / shutdown: the topics, the timeout timer and the worker processes."""
+        for trust in self._image_trust.values():
+            trust.detach()  # its event handle before the subscription
+        self._image_trust = {}
         for sub in self._subs:
             self.destroy_subscription(sub)
         self._subs = []
@@ -375,9 +385,10 @@ class WavefrontNode(ManagedNode):
             "a LAN (100 ms at worst). 1 s leaves a margin of 10x the worst NTP offset and "
             "refuses any clock that is wrong by more.", fp_range=(0.0, 1e6)))
         d("max_image_publishers", describe(
-            "Refuse the images of an image topic while more than this many publishers are "
-            "matched on it (untrusted_source); 0 = no limit. One camera publishes each "
-            "topic: a second publisher (an impostor, a stray bag replay) can mix its "
+            "Take the images of an image topic only while it has exactly this many "
+            "publishers, now and since they were last trusted (untrusted_source otherwise; "
+            "0 = no check). One camera publishes each topic: another publisher (an "
+            "impostor, one that sends a visit and leaves, a stray bag replay) can mix its "
             "exposures into a visit, which no check of the pixels can tell. Every topic "
             "with more than one publisher is named on /diagnostics (WARN) either way.",
             read_only=True, int_range=(0, 64)))
@@ -546,20 +557,16 @@ class WavefrontNode(ManagedNode):
             self._process_pair(step.pair)
 
     def _source_refusal(self, msg: Image, corner: str, side: str) -> Rejection | None:
-        """``untrusted_source`` while more than ``max_image_publishers`` publishers are
-        matched on the image's topic (0 = no limit), naming them (docs/reliability.md, Who
-        may act). The count is the subscription's (cheap, per image); the names are
-        queried from the graph only then."""
-        limit = int(self._param("max_image_publishers"))
-        n = self._publisher_count(corner, side)
-        if limit <= 0 or n is None or n <= limit:
+        """``untrusted_source`` unless the image's topic has exactly ``max_image_publishers``
+        publishers, now and since they were last trusted (:class:`PublisherTrust`: a camera
+        that publishes one visit and leaves before its images are taken is still counted;
+        0 = no check), naming them (docs/reliability.md, Who may act)."""
+        trust = self._image_trust.get((corner, side))
+        why = None if trust is None else trust.problem()
+        if why is None:
             return None
-        names = self._refresh_image_publishers().get((corner, side), [])
-        return Rejection("untrusted_source", f"{side} image of {corner}: {n} publishers are "
-                         f"matched on {image_topic(corner, side)} "
-                         f"({', '.join(names) or 'names not yet in the graph'}), more than "
-                         f"max_image_publishers {limit}: which camera took it cannot be told",
-                         corner, side, stamp_to_ns(msg.header.stamp))
+        return Rejection("untrusted_source", f"{side} image of {corner}: {why}: which camera "
+                         "took it cannot be told", corner, side, stamp_to_ns(msg.header.stamp))
 
     def _refresh_image_publishers(self) -> dict[tuple[str, str], list[str]]:
         """The publishers of each served image topic, from the ROS graph (~0.1 ms a topic):
