@@ -135,3 +135,33 @@ def test_uncertainty_limits_must_leave_room(ros_context, spin):
         OfcNode(context=ros_context, parameter_overrides=[
             Parameter("min_uncertainty_nm", value=900.0),
             Parameter("max_uncertainty_nm", value=500.0)])
+
+
+def test_a_lifecycle_cycle_keeps_what_was_integrated(ros_context, spin, tmp_path):
+    """Deactivate, clean up, configure and activate (any process can ask for them): the
+    measurement integrated before the cycle, re-sent under a new stamp, is still a repeat."""
+    from conftest import wait_for
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
+        Parameter("rotator_angle_source", value="fixed"),
+        Parameter("state_file", value=str(tmp_path / "ofc.state.json"))]))
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    out: list[DofCorrection] = []
+    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    rng = np.random.default_rng(5)
+    a = _state_vector(rng) + rng.normal(0, 8.0, 76)
+    unc = np.full(76, 12.0)
+    pub.publish(_vector(T, a, unc))
+    wait_for(lambda: any(stamp_to_ns(m.header.stamp) == T for m in out), 5, "the answer")
+    assert [m for m in out if stamp_to_ns(m.header.stamp) == T][0].valid
+    for step in (ofc.trigger_deactivate, ofc.trigger_cleanup, ofc.trigger_configure,
+                 ofc.trigger_activate):
+        assert step() == TransitionCallbackReturn.SUCCESS
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery again")
+    pub.publish(_vector(T + VISIT, a, unc))
+    wait_for(lambda: ofc.guard_counts.counts.get("repeated_measurement", 0) == 1, 5,
+             "the repeat counted")
+    assert not any(stamp_to_ns(m.header.stamp) == T + VISIT and m.valid for m in out)

@@ -353,7 +353,7 @@ def test_a_camera_that_sends_one_visit_and_leaves_is_refused(graph):
                  "discovery")
         time.sleep(2.5)
         h = T + 7 * SEC
-        for side, p in imps.items():
+        for p in imps.values():
             p.publish(image_msg(DONUT, h))
         for p in imps.values():
             other.destroy_publisher(p)

@@ -392,6 +392,12 @@ class VisitGuard:
         del self._seen[:-self._history]
         self.last_stamp_ns = int(stamp_ns)
 
+    def carry_over(self, other: VisitGuard) -> None:
+        """Take ``other``'s integrated visits (a node reconfigured through its lifecycle
+        keeps what it integrated: a cycle must not open the door to a repeat)."""
+        self._seen = list(other._seen)[-self._history:]
+        self.last_stamp_ns = other.last_stamp_ns
+
     def reset(self) -> None:
         self._seen.clear()
         self.last_stamp_ns = None

@@ -343,8 +343,11 @@ class OfcNode(ManagedNode):
         bad = string_param_problem("frame_id", self.frame_id)
         if bad is not None:
             raise ConfigError(f"parameter {bad}")
+        old = getattr(self, "guard", None)
         self.guard = P.VisitGuard(self._param("min_visit_period_s"),
                                   copies=self._copy_rule())
+        if old is not None:  # a lifecycle cycle: what was integrated stays integrated
+            self.guard.carry_over(old)
         self.queue_gaps = SequenceGaps()
         self.guard_counts = RejectionCounter()
         self._bounds: P.PlausibilityBounds | None = None
