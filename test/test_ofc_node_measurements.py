@@ -165,3 +165,43 @@ def test_a_lifecycle_cycle_keeps_what_was_integrated(ros_context, spin, tmp_path
     wait_for(lambda: ofc.guard_counts.counts.get("repeated_measurement", 0) == 1, 5,
              "the repeat counted")
     assert not any(stamp_to_ns(m.header.stamp) == T + VISIT and m.valid for m in out)
+
+
+def test_a_restarted_node_still_refuses_a_measurement_it_integrated(ros_context, spin,
+                                                                    tmp_path):
+    """The state file holds the integrated visits: the same measurement under a new stamp,
+    sent to the node that restarts from the file, is a repeat; a new one is integrated."""
+    from conftest import wait_for
+
+    state = str(tmp_path / "ofc.state.json")
+    over = [Parameter("rotator_angle_source", value="fixed"),
+            Parameter("state_file", value=state)]
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    out: list[DofCorrection] = []
+    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+
+    def answer(stamp: int) -> DofCorrection:
+        wait_for(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out), 5,
+                 f"the answer to {stamp}")
+        return [m for m in out if stamp_to_ns(m.header.stamp) == stamp][0]
+
+    rng = np.random.default_rng(8)
+    truth = _state_vector(rng)
+    a = truth + rng.normal(0, 8.0, 76)
+    unc = np.full(76, 12.0)
+    first = spin(OfcNode(context=ros_context, parameter_overrides=over))
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    pub.publish(_vector(T, a, unc))
+    assert answer(T).valid
+    first.trigger_deactivate()
+    first.trigger_cleanup()  # its subscription gone: the file is all the next one has
+    wait_for(lambda: pub.get_subscription_count() == 0, 10, "the node gone")
+    second = spin(OfcNode(context=ros_context, parameter_overrides=over))
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery again")
+    pub.publish(_vector(T + VISIT, a, unc))
+    wait_for(lambda: second.guard_counts.counts.get("repeated_measurement", 0) == 1, 5,
+             "the repeat counted")
+    pub.publish(_vector(T + 2 * VISIT, truth + rng.normal(0, 8.0, 76), unc))
+    assert answer(T + 2 * VISIT).valid
+    assert not any(stamp_to_ns(m.header.stamp) == T + VISIT and m.valid for m in out)

@@ -321,6 +321,13 @@ def _blocks(z_nm: np.ndarray, uncertainty_nm: np.ndarray | None
     return [(z[k], None if u is None else u[k]) for k in range(len(CORNERS))]
 
 
+def _finite(values: object, n: int) -> np.ndarray:
+    a = np.array(values, dtype=np.float64).reshape(n)
+    if not np.all(np.isfinite(a)):
+        raise ValueError("non-finite values")
+    return a
+
+
 @dataclass(frozen=True)
 class _Integrated:
     stamp_ns: int
@@ -391,6 +398,42 @@ class VisitGuard:
                                       np.array(corner_valid, dtype=bool).reshape(-1), u))
         del self._seen[:-self._history]
         self.last_stamp_ns = int(stamp_ns)
+
+    def record(self, pending: tuple[int, np.ndarray, np.ndarray, np.ndarray | None] | None
+               = None) -> dict:
+        """The integrated visits as plain lists for the state file, with ``pending``
+        ``(stamp_ns, z_nm, corner_valid, uncertainty_nm)`` (a visit being applied) last:
+        a restarted node keeps refusing what it integrated (:meth:`restore`)."""
+        seen = list(self._seen)
+        if pending is not None:
+            seen.append(_Integrated(int(pending[0]), np.asarray(pending[1], float).reshape(-1),
+                                    np.asarray(pending[2], bool).reshape(-1),
+                                    None if pending[3] is None else
+                                    np.asarray(pending[3], float).reshape(-1)))
+        return {"seen": [{"stamp_ns": v.stamp_ns, "z_nm": v.z_nm.tolist(),
+                          "corner_valid": v.corner_valid.tolist(),
+                          "uncertainty_nm": None if v.uncertainty_nm is None
+                          else v.uncertainty_nm.tolist()} for v in seen[-self._history:]]}
+
+    def restore(self, rec: object) -> int:
+        """Put a :meth:`record` back; returns the visits restored. ConfigError for a record
+        that is not one (the node then refuses visits until ~/reset, as for the controller
+        state)."""
+        if rec is None:
+            return 0
+        try:
+            seen = [_Integrated(int(v["stamp_ns"]), _finite(v["z_nm"], layout.N_MEAS),
+                                np.array(v["corner_valid"], dtype=bool).reshape(len(CORNERS)),
+                                None if v["uncertainty_nm"] is None
+                                else _finite(v["uncertainty_nm"], layout.N_MEAS))
+                    for v in rec["seen"]]  # type: ignore[index]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"controller state: the integrated visits are not a record "
+                              f"of them ({type(exc).__name__}: {exc})") from exc
+        self._seen = seen[-self._history:]
+        if seen:
+            self.last_stamp_ns = max(v.stamp_ns for v in seen)
+        return len(self._seen)
 
     def carry_over(self, other: VisitGuard) -> None:
         """Take ``other``'s integrated visits (a node reconfigured through its lifecycle

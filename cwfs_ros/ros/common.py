@@ -434,10 +434,13 @@ class PublisherTrust:
 
     settle_s = 2.0
 
-    def __init__(self, node: Any, topic: str, expected: int) -> None:
+    def __init__(self, node: Any, topic: str, expected: int, at_most: bool = False) -> None:
         self._node = node
         self.topic = node.resolve_topic_name(topic)
         self.expected = int(expected)
+        # at_most: fewer publishers than expected are fine (a camera or bag player that has
+        # sent its last images and left); more, now or since last trusted, are not.
+        self.at_most = bool(at_most)
         self.sub: Any = None
         self._event: Any = None
         self._lock = threading.Lock()
@@ -526,7 +529,13 @@ class PublisherTrust:
         except Exception as exc:  # noqa: BLE001 - an unanswered query is no trust
             return f"the publishers of {self.topic} cannot be read: {exc}"
         n_matched = n_graph if seen is None else seen[1]
-        if n_graph != self.expected or n_matched != self.expected:
+        if self.at_most:
+            if n_graph > self.expected or n_matched > self.expected:
+                return (f"{self.topic} has {n_graph} publisher(s) ({n_matched} matched), "
+                        f"at most {self.expected} expected: {self.publishers()}")
+            if seen is not None and seen[0] <= self.expected:
+                return None  # never more writers than expected matched
+        elif n_graph != self.expected or n_matched != self.expected:
             return (f"{self.topic} has {n_graph} publisher(s) ({n_matched} matched), "
                     f"expected exactly {self.expected}: {self.publishers()}")
         with self._lock:

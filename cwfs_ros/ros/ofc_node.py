@@ -431,6 +431,11 @@ class OfcNode(ManagedNode):
         unc = np.asarray(msg.uncertainty_nm, dtype=np.float64)
         copies = self._copy_rule()
         with self._lock:
+            # A visit not newer than the last applied one is named as such (published), before
+            # the repeat rule would refuse its measurement silently.
+            stale = self.solver.visit_stamp_problem(stamp, None)
+            if stale is not None:
+                return stale, True
             self.guard.min_period_s = float(self._param("min_visit_period_s"))
             self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
             self.guard.copies = copies
@@ -510,7 +515,8 @@ class OfcNode(ManagedNode):
                     uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
                     angle_deg=angle, angle_why=why, stamp_ns=stamp, now_ns=now, dry_run=dry)
                 if out.valid and not dry:
-                    out = self._persist(out, before)
+                    out = self._persist(out, before, (stamp, z, valid, np.asarray(
+                        msg.uncertainty_nm, dtype=np.float64)))
                 self._log_observability_change(out)
                 self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
@@ -576,8 +582,10 @@ class OfcNode(ManagedNode):
                                        "from the prior")
                 return
             what = restore_record(self.solver, rec)
+            n_seen = self.guard.restore(rec.get("integrated"))
             self.get_logger().info(f"controller state restored from {self.state_file}: {what}, "
-                                   f"last visit {self.solver.last_stamp_ns} ns")
+                                   f"last visit {self.solver.last_stamp_ns} ns, {n_seen} "
+                                   "integrated visit(s) for the repeat rule")
         except (ConfigError, ValueError, TypeError, OverflowError) as exc:
             self.solver.reset()  # nothing of a refused file stays in the controller
             # Never act from a state that may be wrong: refuse visits until an operator looks
@@ -585,19 +593,23 @@ class OfcNode(ManagedNode):
             self.state_problem = Problem("state_file_unreadable", str(exc))
             self.get_logger().error(f"{exc}; every visit is refused until ~/reset")
 
-    def _persist(self, out: C.OFCResult, before: dict | None) -> C.OFCResult:
+    def _persist(self, out: C.OFCResult, before: dict | None, visit: tuple) -> C.OFCResult:
         """Write the state of an applied visit before its correction is published.
 
         Saved first, then published: a crash in between loses one correction (the next
         visit's measurement shows it was never applied, and the filter takes that in) rather
-        than applying one twice after a restart. A state that cannot be written is not
+        than applying one twice after a restart. The file also holds the integrated visits,
+        ``visit`` (stamp, Zernikes, corner validity, uncertainty) included, so that a
+        restarted node still refuses their measurements under new stamps. A state that cannot
+        be written is not
         applied at all: the controller goes back to ``before`` and the visit is refused, so
         that the file never falls behind what the telescope was told.
         """
         if not self.state_file or before is None:
             return out
         try:
-            save_state(self.state_file, state_record(self.solver))
+            save_state(self.state_file, {**state_record(self.solver),
+                                         "integrated": self.guard.record(visit)})
             self.save_problem = None
             return out
         except OSError as exc:
@@ -650,7 +662,8 @@ class OfcNode(ManagedNode):
             saved = ""
             if self.state_file:
                 try:
-                    save_state(self.state_file, state_record(self.solver))
+                    save_state(self.state_file, {**state_record(self.solver),
+                                                 "integrated": self.guard.record()})
                     saved = f"; {self.state_file} holds the cleared state"
                     self.save_problem = None
                 except OSError as exc:

@@ -19,8 +19,8 @@ out  ``/diagnostics``                    state, counts of rejected inputs and th
 Input guards (docs/reliability.md): an image stamped 0, or more than ``max_future_s`` ahead
 of the node's clock, whose pair could not fit within ``max_pending_mb``, or whose
 ``header.frame_id`` names another corner or side than its topic's, is refused (``no_stamp``,
-``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic unless it
-has exactly ``max_image_publishers`` publishers, now and since they were last trusted
+``future_stamp``, ``too_large``, ``frame_mismatch``), as are the images of a topic while it
+has more than ``max_image_publishers`` publishers, now or since they were last trusted
 (``untrusted_source``, :class:`~cwfs_ros.ros.common.PublisherTrust`; every
 image topic with several publishers is named on /diagnostics); images waiting for their
 partners hold at most ``max_pending_mb`` (the oldest is dropped first, ``memory_limit``);
@@ -240,7 +240,8 @@ class WavefrontNode(ManagedNode):
                     event_callbacks=self.qos_events.subscription_callbacks(topic))
                 self._subs.append(sub)
                 self._image_subs[(c, s)] = sub
-                trust = PublisherTrust(self, topic, int(self._param("max_image_publishers")))
+                trust = PublisherTrust(self, topic, int(self._param("max_image_publishers")),
+                                       at_most=True)
                 trust.attach(sub)
                 self._image_trust[(c, s)] = trust
         if self.assemble:
@@ -385,9 +386,9 @@ class WavefrontNode(ManagedNode):
             "a LAN (100 ms at worst). 1 s leaves a margin of 10x the worst NTP offset and "
             "refuses any clock that is wrong by more.", fp_range=(0.0, 1e6)))
         d("max_image_publishers", describe(
-            "Take the images of an image topic only while it has exactly this many "
-            "publishers, now and since they were last trusted (untrusted_source otherwise; "
-            "0 = no check). One camera publishes each topic: another publisher (an "
+            "Refuse the images of an image topic while it has more than this many "
+            "publishers, now or since they were last trusted (untrusted_source; 0 = no "
+            "check). One camera publishes each topic: another publisher (an "
             "impostor, one that sends a visit and leaves, a stray bag replay) can mix its "
             "exposures into a visit, which no check of the pixels can tell. Every topic "
             "with more than one publisher is named on /diagnostics (WARN) either way.",
@@ -557,10 +558,11 @@ class WavefrontNode(ManagedNode):
             self._process_pair(step.pair)
 
     def _source_refusal(self, msg: Image, corner: str, side: str) -> Rejection | None:
-        """``untrusted_source`` unless the image's topic has exactly ``max_image_publishers``
-        publishers, now and since they were last trusted (:class:`PublisherTrust`: a camera
+        """``untrusted_source`` while the image's topic has more than ``max_image_publishers``
+        publishers, now or since they were last trusted (:class:`PublisherTrust`: a camera
         that publishes one visit and leaves before its images are taken is still counted;
-        0 = no check), naming them (docs/reliability.md, Who may act)."""
+        fewer are fine: a camera that sent its last visit and left; 0 = no check), naming
+        them (docs/reliability.md, Who may act)."""
         trust = self._image_trust.get((corner, side))
         why = None if trust is None else trust.problem()
         if why is None:
