@@ -1,8 +1,9 @@
 """The graph in its own process, for benchmarks that play the camera from this one.
 
-``start_bringup`` runs ``python -m cwfs_ros.ros.launch bringup --ros-args ...`` in a new
-session on ``domain`` (its output discarded); ``stop_bringup`` sends SIGINT to its process
-group, then SIGKILL if it has not exited; ``stop_client`` tears down this process's node.
+``start_bringup`` runs ``python -m cwfs_ros.ros.launch bringup --ros-args ...`` as the
+leader of its own process group on ``domain`` (its output discarded); ``stop_bringup``
+sends SIGINT to that process group, then SIGKILL if it has not exited; ``stop_client``
+tears down this process's node.
 """
 
 from __future__ import annotations

@@ -503,16 +503,12 @@ class CameraSimNode(NodeBasics, Node):
                                                    for c in CORNERS for s in SIDES),
                                                  TRUTH_TOPIC])
         values.append(("foreign_publishers", "; ".join(self.foreign) or "none"))
-        values += [("correction_publishers", f"{self.trust.publishers()} (expected "
-                                             f"{self.trust.expected or 'any'})"),
-                   ("untrusted_recent", self.trust.recent(60.0) or "none")]
-        n_pub = self.count_publishers(self.trust.topic)
+        values += self.trust.key_values("correction_publishers")
+        excess = self.trust.excess()
         if self.untrusted.recent(60.0):
             level, message = ERROR, f"untrusted_source: {self.untrusted.last_message}"
-        elif n_pub > self.trust.expected > 0:
-            level, message = ERROR, (f"untrusted_source: {n_pub} publishers on "
-                                     f"{self.trust.topic}, expected {self.trust.expected}: "
-                                     f"{self.trust.publishers()}")
+        elif excess:
+            level, message = ERROR, excess
         elif failed:
             level, message = WARN, self.last_status
         elif self.foreign:

@@ -547,6 +547,21 @@ class PublisherTrust:
                     f"{self.expected} for {self.settle_s:g} s (now: {self.publishers()})")
         return None
 
+    def excess(self) -> str | None:
+        """``untrusted_source: ...`` while the graph lists more publishers on the topic than
+        expected (the nodes' /diagnostics ERROR), else None."""
+        n_pub = self._node.count_publishers(self.topic)
+        if not n_pub > self.expected > 0:
+            return None
+        return (f"untrusted_source: {n_pub} publishers on {self.topic}, expected "
+                f"{self.expected}: {self.publishers()}")
+
+    def key_values(self, name: str) -> list[tuple[str, str]]:
+        """/diagnostics values: the topic's publishers (as ``name``) and the last change of
+        its matched writers within a minute."""
+        return [(name, f"{self.publishers()} (expected {self.expected or 'any'})"),
+                ("untrusted_recent", self.recent(60.0) or "none")]
+
     def recent(self, window_s: float) -> str | None:
         """The last change of the matched writers if within ``window_s``, else None."""
         try:

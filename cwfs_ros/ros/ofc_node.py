@@ -467,11 +467,8 @@ class OfcNode(ManagedNode):
         values += [("queue_dropped", str(self.queue_gaps.dropped)
                     + ("" if n_pub <= 1 else f" (estimate: {n_pub} publishers)")),
                    ("min_visit_period_s", str(self.guard.min_period_s)),
-                   ("foreign_publishers", "; ".join(self.foreign) or "none"),
-                   ("vector_publishers", f"{self.trust.publishers()} (expected "
-                                         f"{self.trust.expected or 'any'})"),
-                   ("untrusted_recent", self.trust.recent(60.0) or "none")]
-        return values
+                   ("foreign_publishers", "; ".join(self.foreign) or "none")]
+        return values + self.trust.key_values("vector_publishers")
 
     # ------------------------------------------------------------------ control
     def _on_vector(self, msg: WavefrontVector) -> None:
@@ -700,15 +697,13 @@ class OfcNode(ManagedNode):
                       ("last_step_ms", f"{self.last_ms:.2f}")]
         values += self.refused.key_values()
         values += self._guard_values()
-        n_pub = self.count_publishers(self.trust.topic)
+        excess = self.trust.excess()
         if self.state_problem is not None or self.save_problem is not None:
             level, message = ERROR, str(self.state_problem or self.save_problem)
         elif self.untrusted.recent(60.0):
             level, message = ERROR, f"refused a vector: {self.untrusted.last_message}"
-        elif n_pub > self.trust.expected > 0:
-            level, message = ERROR, (f"untrusted_source: {n_pub} publishers on "
-                                     f"{self.trust.topic}, expected {self.trust.expected}: "
-                                     f"{self.trust.publishers()}")
+        elif excess:
+            level, message = ERROR, excess
         elif lifecycle != "active":
             level, message = WARN, f"{lifecycle}: {self._inactive_effect()}"
         elif self.foreign:
