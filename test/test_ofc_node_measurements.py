@@ -45,15 +45,31 @@ def _vector(stamp: int, z: np.ndarray, unc: np.ndarray, pairs=(1, 1, 1, 1)) -> W
     return m
 
 
+def _tester(ros_context, spin) -> tuple:
+    """A tester node's publisher of vectors and the list of corrections it records."""
+    tester = spin(rclpy.create_node("tester", context=ros_context))
+    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
+    out: list[DofCorrection] = []
+    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    return pub, out
+
+
+def _answer(out: list[DofCorrection], stamp: int) -> DofCorrection:
+    """The one correction published for ``stamp``, waited for."""
+    from conftest import wait_for
+
+    wait_for(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out), 5,
+             f"the answer to {stamp}")
+    (m,) = [m for m in out if stamp_to_ns(m.header.stamp) == stamp]
+    return m
+
+
 def test_node_refuses_what_no_measurement_is(ros_context, spin):
     from conftest import wait_for
 
     ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
         Parameter("rotator_angle_source", value="fixed")]))
-    tester = spin(rclpy.create_node("tester", context=ros_context))
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    out: list[DofCorrection] = []
-    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    pub, out = _tester(ros_context, spin)
     wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
     rng = np.random.default_rng(11)
     truth = _state_vector(rng)
@@ -62,15 +78,9 @@ def test_node_refuses_what_no_measurement_is(ros_context, spin):
     def measured() -> np.ndarray:
         return truth + rng.normal(0, 8.0, 76)
 
-    def answer(stamp: int) -> DofCorrection:
-        wait_for(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out), 5,
-                 f"the answer to {stamp}")
-        (m,) = [m for m in out if stamp_to_ns(m.header.stamp) == stamp]
-        return m
-
     first = measured()
     pub.publish(_vector(T, first, unc))
-    assert answer(T).valid
+    assert _answer(out, T).valid
     # The same measurement re-sent with 1e-9 nm of noise every 20 s, past the period, and one
     # corner of it inside otherwise new data: nothing integrated, no correction published.
     silent = []
@@ -88,13 +98,13 @@ def test_node_refuses_what_no_measurement_is(ros_context, spin):
     # (15 s); 20 s later it is integrated.
     s_ok = T + 100 * SEC
     pub.publish(_vector(s_ok, measured(), unc))
-    assert answer(s_ok).valid
+    assert _answer(out, s_ok).valid
     silent.append(s_ok + 5 * SEC)
     pub.publish(_vector(silent[-1], measured(), unc))
     wait_for(lambda: ofc.guard_counts.counts.get("too_soon", 0) == 1, 5, "too soon counted")
     s_ok2 = s_ok + 20 * SEC
     pub.publish(_vector(s_ok2, measured(), unc))
-    assert answer(s_ok2).valid
+    assert _answer(out, s_ok2).valid
     # Refused with a published reason: corners copied into one another, and claims no
     # estimate makes (the +5000 nm would be within the bound 5 x 1e4 nm would widen).
     cases = []
@@ -112,7 +122,7 @@ def test_node_refuses_what_no_measurement_is(ros_context, spin):
     for k, (z, u, p, reason) in enumerate(cases):
         stamp = s_ok2 + (k + 1) * VISIT
         pub.publish(_vector(stamp, z, u, p))
-        m = answer(stamp)
+        m = _answer(out, stamp)
         assert not m.valid and m.status.startswith(reason), (k, reason, m.status)
         assert not np.any(np.asarray(m.dof))
     time.sleep(0.3)
@@ -146,17 +156,13 @@ def test_a_lifecycle_cycle_keeps_what_was_integrated(ros_context, spin, tmp_path
     ofc = spin(OfcNode(context=ros_context, parameter_overrides=[
         Parameter("rotator_angle_source", value="fixed"),
         Parameter("state_file", value=str(tmp_path / "ofc.state.json"))]))
-    tester = spin(rclpy.create_node("tester", context=ros_context))
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    out: list[DofCorrection] = []
-    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
+    pub, out = _tester(ros_context, spin)
     wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
     rng = np.random.default_rng(5)
     a = _state_vector(rng) + rng.normal(0, 8.0, 76)
     unc = np.full(76, 12.0)
     pub.publish(_vector(T, a, unc))
-    wait_for(lambda: any(stamp_to_ns(m.header.stamp) == T for m in out), 5, "the answer")
-    assert [m for m in out if stamp_to_ns(m.header.stamp) == T][0].valid
+    assert _answer(out, T).valid
     for step in (ofc.trigger_deactivate, ofc.trigger_cleanup, ofc.trigger_configure,
                  ofc.trigger_activate):
         assert step() == TransitionCallbackReturn.SUCCESS
@@ -176,15 +182,7 @@ def test_a_restarted_node_still_refuses_a_measurement_it_integrated(ros_context,
     state = str(tmp_path / "ofc.state.json")
     over = [Parameter("rotator_angle_source", value="fixed"),
             Parameter("state_file", value=state)]
-    tester = spin(rclpy.create_node("tester", context=ros_context))
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    out: list[DofCorrection] = []
-    tester.create_subscription(DofCorrection, "aos/ofc/dof_correction", out.append, OUTPUT_QOS)
-
-    def answer(stamp: int) -> DofCorrection:
-        wait_for(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in out), 5,
-                 f"the answer to {stamp}")
-        return [m for m in out if stamp_to_ns(m.header.stamp) == stamp][0]
+    pub, out = _tester(ros_context, spin)
 
     rng = np.random.default_rng(8)
     truth = _state_vector(rng)
@@ -193,7 +191,7 @@ def test_a_restarted_node_still_refuses_a_measurement_it_integrated(ros_context,
     first = spin(OfcNode(context=ros_context, parameter_overrides=over))
     wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
     pub.publish(_vector(T, a, unc))
-    assert answer(T).valid
+    assert _answer(out, T).valid
     first.trigger_deactivate()
     first.trigger_cleanup()  # its subscription gone: the file is all the next one has
     wait_for(lambda: pub.get_subscription_count() == 0, 10, "the node gone")
@@ -203,5 +201,5 @@ def test_a_restarted_node_still_refuses_a_measurement_it_integrated(ros_context,
     wait_for(lambda: second.guard_counts.counts.get("repeated_measurement", 0) == 1, 5,
              "the repeat counted")
     pub.publish(_vector(T + 2 * VISIT, truth + rng.normal(0, 8.0, 76), unc))
-    assert answer(T + 2 * VISIT).valid
+    assert _answer(out, T + 2 * VISIT).valid
     assert not any(stamp_to_ns(m.header.stamp) == T + VISIT and m.valid for m in out)
