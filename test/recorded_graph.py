@@ -45,9 +45,13 @@ def start_graph(ctx, domain: int, overlay: Path) -> tuple[threading.Thread, dict
 
 
 def record_visits(ctx, started: dict, bag_dir: Path, visits: int, *, tester: str,
-                  dof_timeout_s: float) -> dict:
+                  dof_timeout_s: float, warm_up_timeout_s: float = 60.0) -> dict:
     """Trigger ``visits`` visits one at a time while recording; what the bag summary and an
-    independent tester node got (every CornerWavefront and DofCorrection)."""
+    independent tester node got (every CornerWavefront and DofCorrection).
+
+    ``warm_up_timeout_s`` bounds the wait for the workers' warm-up: the stamp path takes a
+    few seconds, the field tiles of four frame corners ~30 s on an idle 2-core machine and
+    more than twice that on a loaded one."""
     nodes = started["nodes"]
     wf, cam = nodes["wavefront_node"], nodes["camera_sim_node"]
     rec = B.Recorder(bag_dir, context=ctx, storage="mcap")
@@ -62,7 +66,7 @@ def record_visits(ctx, started: dict, bag_dir: Path, visits: int, *, tester: str
     started["executor"].add_node(rec.node)
     started["executor"].add_node(node)
     assert trigger.wait_for_service(timeout_sec=10)
-    wait_for(lambda: wf.ready, 60, "wavefront worker warm-up")
+    wait_for(lambda: wf.ready, warm_up_timeout_s, "wavefront worker warm-up")
     wait_for(lambda: all(s.get_publisher_count() > 0 for s in rec.subscriptions.values()),
              15, "the recorder to match every publisher of the graph")
     wait_for(lambda: all(p.get_subscription_count() >= 2 for p in cam.pubs.values()), 10,

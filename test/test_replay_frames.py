@@ -56,7 +56,7 @@ def _record(ctx, started: dict, bag_dir: Path) -> dict:
     """Trigger the visits with the recorder on the graph's executor; what the tester got."""
     nodes = started["nodes"]
     out = record_visits(ctx, started, bag_dir, VISITS, tester="replay_frames_tester",
-                        dof_timeout_s=120)
+                        dof_timeout_s=120, warm_up_timeout_s=180)
     return {"live_corners": out["live_corners"], "live_dofs": out["live_dofs"],
             "frame_pairs": nodes["wavefront_node"].stats["frame_pairs"],
             "stars": dict(nodes["camera_sim_node"].last_frame_stars)}
