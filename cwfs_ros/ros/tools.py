@@ -61,6 +61,10 @@ __all__ = [
 
 EXIT_NOT_FOUND = ToolError.exit_code
 DEFAULT_TRUNCATE = 128  # ros2 topic echo's default --truncate-length
+# Default --timeout: a new participant finds a node's services within a second on an idle
+# host, but several seconds later while the graph's workers build their caches; the wait
+# ends as soon as the node or topic is there.
+DEFAULT_WAIT_S = 10.0
 _TOOL_NODE_PREFIX = "_cwfs_ros_cli_"
 
 
@@ -353,8 +357,9 @@ def add_topic_parser(subparsers: Any) -> argparse.ArgumentParser:
         v.add_argument("type", metavar="TYPE", nargs="?",
                        help="message type, e.g. cwfs_msgs/msg/CornerWavefront "
                             "(default: the graph's)")
-        v.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
-                       help="seconds to wait for the topic to appear (default: 5)")
+        v.add_argument("--timeout", type=positive_float, default=DEFAULT_WAIT_S, metavar="S",
+                       help=f"seconds to wait for the topic to appear "
+                            f"(default: {DEFAULT_WAIT_S:g})")
         v.set_defaults(func=func)
         if verb == "hz":
             v.add_argument("-w", "--window", type=positive_int, default=10000,
@@ -516,8 +521,9 @@ def add_param_parser(subparsers: Any) -> argparse.ArgumentParser:
         v.add_argument("node", metavar="NODE", help="node name, e.g. ofc_node or /ofc_node")
         for name in positionals:
             v.add_argument(name, metavar=name.upper())
-        v.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
-                       help="seconds to wait for the node and each answer (default: 5)")
+        v.add_argument("--timeout", type=positive_float, default=DEFAULT_WAIT_S, metavar="S",
+                       help=f"seconds to wait for the node and each answer "
+                            f"(default: {DEFAULT_WAIT_S:g})")
         if verb == "list":
             v.add_argument("--param-type", action="store_true",
                            help="print each parameter's type")
@@ -643,7 +649,8 @@ def add_lifecycle_parser(subparsers: Any) -> argparse.ArgumentParser:
         if verb == "set":
             v.add_argument("transition", metavar="TRANSITION",
                            help="transition label (or id)")
-        v.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
-                       help="seconds to wait for the node and each answer (default: 5)")
+        v.add_argument("--timeout", type=positive_float, default=DEFAULT_WAIT_S, metavar="S",
+                       help=f"seconds to wait for the node and each answer "
+                            f"(default: {DEFAULT_WAIT_S:g})")
         v.set_defaults(func=func)
     return p
