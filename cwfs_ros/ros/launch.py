@@ -145,35 +145,17 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
     Returns:
         Process exit code (0 after a clean shutdown, 2 when a node could not start).
     """
-    from cwfs_ros.errors import ParamsFileError
-    from cwfs_ros.ros.params import read_params_file
-
     ensure_fastdds_profile()
-    try:
-        classes = [load_node_class(n) for n in names]
-        argv = ["cwfs-ros", *ros_arguments(params_files, ros_args)]
-        files = _params_files_of(argv)
-        for f in files:
-            read_params_file(f)  # YAML and structure, before rcl reads it
-    except (LaunchError, ParamsFileError) as exc:
-        print(f"cwfs-ros: error: {exc}", file=sys.stderr)
+    checked = _checked_arguments(names, params_files, ros_args)
+    if checked is None:
         return 2
-
-    import rclpy
+    classes, argv, files = checked
+    ctx = _init_context(context, argv, domain_id)
+    if ctx is None:
+        return 2
 
     from cwfs_ros.ros.executor import MultiThreadedExecutor
 
-    ctx = context
-    try:
-        if ctx is None:
-            rclpy.init(args=argv, domain_id=domain_id)
-            ctx = rclpy.get_default_context()
-        else:
-            rclpy.init(args=argv, context=ctx, domain_id=domain_id)
-    except Exception as exc:  # noqa: BLE001 - rcl's RCLError for bad --ros-args
-        print(f"cwfs-ros: error: ROS could not start: {' '.join(str(exc).split())}",
-              file=sys.stderr)
-        return 2
     nodes = []
     executor = None
     code = 0
@@ -199,6 +181,42 @@ def run_nodes(names: Sequence[str], *, params_files: Sequence[str | Path] = (),
                 pass
         ctx.try_shutdown()
     return code
+
+
+def _checked_arguments(names: Sequence[str], params_files: Sequence[str | Path],
+                       ros_args: Sequence[str]) -> tuple[list[type], list[str], list[Path]] | None:
+    """(node classes, argv, parameter files), every file read as YAML before rcl reads it;
+    None, with the reason on stderr, if a name or a file is wrong."""
+    from cwfs_ros.errors import ParamsFileError
+    from cwfs_ros.ros.params import read_params_file
+
+    try:
+        classes = [load_node_class(n) for n in names]
+        argv = ["cwfs-ros", *ros_arguments(params_files, ros_args)]
+        files = _params_files_of(argv)
+        for f in files:
+            read_params_file(f)
+    except (LaunchError, ParamsFileError) as exc:
+        print(f"cwfs-ros: error: {exc}", file=sys.stderr)
+        return None
+    return classes, argv, list(files)
+
+
+def _init_context(context, argv: Sequence[str], domain_id: int | None):
+    """``context`` (or the global one) initialised with ``argv``; None, with the reason on
+    stderr, if rcl refuses the arguments."""
+    import rclpy
+
+    try:
+        if context is None:
+            rclpy.init(args=argv, domain_id=domain_id)
+            return rclpy.get_default_context()
+        rclpy.init(args=argv, context=context, domain_id=domain_id)
+        return context
+    except Exception as exc:  # noqa: BLE001 - rcl's RCLError for bad --ros-args
+        print(f"cwfs-ros: error: ROS could not start: {' '.join(str(exc).split())}",
+              file=sys.stderr)
+        return None
 
 
 def _create_nodes(names: Sequence[str], classes: Sequence[type], ctx, argv: Sequence[str],

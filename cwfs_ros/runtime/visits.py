@@ -285,49 +285,71 @@ class PairingBuffer:
         if side not in SIDES:
             return None, Rejection("unknown_side", f"{where}: side must be intra or extra",
                                    c, side, t)
-        tol = self.tolerance_ns
-        closed = self._closed[c].find(t, tol)
+        problem = self._closed_visit_problem(rec, where)
+        if problem is not None:
+            return None, problem
+        notice = self._closed[c].age_check(t, self.tolerance_ns, self.clock_reset_ns, where,
+                                           c, side)
+        if notice is not None and notice.reason == "late":
+            return None, notice
+        problem = self._waiting_problem(rec, where)
+        if problem is not None:
+            return None, problem
+        return self._pair_or_wait(rec), notice
+
+    def _closed_visit_problem(self, rec: ImageRecord, where: str) -> Rejection | None:
+        """Why an image of a visit already closed is not taken (``conflicting_images`` when
+        it is not the image that was paired, ``duplicate`` when it is, ``late`` for a visit
+        closed otherwise), or None for an open visit."""
+        c, side, t = rec.corner, rec.side, int(rec.stamp_ns)
+        closed = self._closed[c].find(t, self.tolerance_ns)
         if closed == "paired":
             found = self._paired_lookup(c, t)
             if found is not None and found[1][side] != rec.identity():
                 # Reported under the visit's stamp (the pair's), which its outputs carry.
-                return None, Rejection(
+                return Rejection(
                     "conflicting_images", f"{where}: a different {side} image of that visit "
                     "was already paired: two exposures claim one stamp; the corner's visit is "
                     "invalid", c, side, found[0])
-            return None, Rejection("duplicate", f"{where}: that visit was already paired",
-                                   c, side, t)
+            return Rejection("duplicate", f"{where}: that visit was already paired",
+                             c, side, t)
         if closed is not None:
-            return None, Rejection("late", f"{where}: arrived after that visit was closed "
-                                   f"({closed})", c, side, t)
-        notice = self._closed[c].age_check(t, tol, self.clock_reset_ns, where, c, side)
-        if notice is not None and notice.reason == "late":
-            return None, notice
+            return Rejection("late", f"{where}: arrived after that visit was closed "
+                             f"({closed})", c, side, t)
+        return None
+
+    def _waiting_problem(self, rec: ImageRecord, where: str) -> Rejection | None:
+        """Why an image is not taken when one of its side and visit already waits: another
+        exposure under the same stamp (both dropped, the visit closed) or the same image
+        again; None when none waits."""
+        c, side, t = rec.corner, rec.side, int(rec.stamp_ns)
         same = self._pending[c][side]
-        waiting = [r for r in same if abs(r.stamp_ns - t) <= tol]
-        if waiting and any(r.identity() != rec.identity() for r in waiting):
+        waiting = [r for r in same if abs(r.stamp_ns - t) <= self.tolerance_ns]
+        if not waiting:
+            return None
+        if any(r.identity() != rec.identity() for r in waiting):
             # Neither image can be paired: drop the waiting one and close the visit.
             for r in waiting:
                 same.remove(r)
             visit = waiting[0].stamp_ns  # the visit's stamp, which its outputs carry
             self._closed[c].add(visit, "conflicting_images")
-            return None, Rejection(
+            return Rejection(
                 "conflicting_images", f"{where}: a different {side} image of that visit is "
                 "already waiting: two exposures claim one stamp; the corner's visit is "
                 "invalid", c, side, visit)
-        if waiting:
-            return None, Rejection("duplicate", f"{where}: an image of this side and visit is "
-                                   "already waiting for its partner", c, side, t)
-        other_side = "extra" if side == "intra" else "intra"
-        others = self._pending[c][other_side]
-        match = None
-        for r in others:
-            if abs(r.stamp_ns - t) <= tol and (match is None or
-                                               abs(r.stamp_ns - t) < abs(match.stamp_ns - t)):
-                match = r
-        if match is None:
-            same.append(rec)
-            return None, notice
+        return Rejection("duplicate", f"{where}: an image of this side and visit is "
+                         "already waiting for its partner", c, side, t)
+
+    def _pair_or_wait(self, rec: ImageRecord) -> PairReady | None:
+        """The pair ``rec`` completes with the nearest-stamped image of the other side
+        within the tolerance (the visit then closed as paired), or None, ``rec`` waiting."""
+        c, side, t = rec.corner, rec.side, int(rec.stamp_ns)
+        others = self._pending[c]["extra" if side == "intra" else "intra"]
+        near = [r for r in others if abs(r.stamp_ns - t) <= self.tolerance_ns]
+        if not near:
+            self._pending[c][side].append(rec)
+            return None
+        match = min(near, key=lambda r: abs(r.stamp_ns - t))
         others.remove(match)
         intra, extra = (rec, match) if side == "intra" else (match, rec)
         self._closed[c].add(intra.stamp_ns, "paired")
@@ -335,7 +357,7 @@ class PairingBuffer:
         paired[intra.stamp_ns] = {"intra": intra.identity(), "extra": extra.identity()}
         while len(paired) > self._history:
             paired.popitem(last=False)
-        return PairReady(c, intra.stamp_ns, intra, extra), notice
+        return PairReady(c, intra.stamp_ns, intra, extra)
 
     def was_paired(self, corner: str, stamp_ns: int) -> bool:
         """Whether that corner's visit was paired (still remembered)."""
