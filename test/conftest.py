@@ -136,6 +136,52 @@ def spin(ros_context):
         n.destroy_node()
 
 
+@pytest.fixture
+def r00_graph(ros_context):
+    """A wavefront node serving R00 (the bundled parameters but one worker, a 1-s visit
+    timeout and ``params``) and a tester node publishing its two image topics and recording
+    its outputs. Yields ``start(tester="tester", **params) -> (wavefront node, tester node,
+    {side: publisher}, [CornerWavefront], [WavefrontVector])``, ready and discovered."""
+    from cwfs_msgs.msg import CornerWavefront, WavefrontVector
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+
+    from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS
+    from cwfs_ros.ros.executor import MultiThreadedExecutor
+    from cwfs_ros.ros.wavefront_node import WavefrontNode
+
+    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
+    th = spin_thread(ex)
+    made = []
+
+    def start(tester: str = "tester", **params):
+        import rclpy
+
+        over = {"corners": ["R00"], "workers": 1, "visit_timeout_s": 1.0, **params}
+        wf = WavefrontNode(context=ros_context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in over.items()])
+        node = rclpy.create_node(tester, context=ros_context)
+        made.extend([wf, node])
+        ex.add_node(wf)
+        ex.add_node(node)
+        pub = {s: node.create_publisher(Image, f"aos/wfs/R00/{s}/image", IMAGE_QOS)
+               for s in ("intra", "extra")}
+        corner, vector = [], []
+        node.create_subscription(CornerWavefront, "aos/wfs/R00/wavefront", corner.append,
+                                 OUTPUT_QOS)
+        node.create_subscription(WavefrontVector, "aos/wfs/wavefront", vector.append,
+                                 OUTPUT_QOS)
+        wait_for(lambda: wf.ready, 60, "warm-up")
+        wait_for(lambda: all(p.get_subscription_count() for p in pub.values()), 10,
+                 "discovery")
+        return wf, node, pub, corner, vector
+
+    th.start()
+    yield start
+    ex.shutdown(timeout_sec=2.0)
+    for n in made:
+        n.destroy_node()
+
 def kill_group(proc) -> None:
     """SIGKILL a process started with ``start_new_session=True`` and its whole group."""
     import signal

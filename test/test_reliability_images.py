@@ -177,14 +177,10 @@ def test_the_pipeline_refuses_stamp_0_and_oversized_pairs_before_decoding():
 # ---------------------------------------------------------------------------- over DDS
 rclpy = pytest.importorskip("rclpy")
 
-from cwfs_msgs.msg import CornerWavefront, WavefrontVector  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.ros.convert import image_msg  # noqa: E402
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 
 DONUT = synthetic_donut(160, 60.0, 0.61)
@@ -195,42 +191,11 @@ def of(msgs, stamp):
 
 
 @pytest.fixture
-def graph(ros_context):
+def graph(r00_graph):
     """A wavefront node serving R00 (the bundled parameters but the corners, workers and
-    timeout) and a camera node with its publishers and recorders."""
-    from conftest import spin_thread, wait_for
-
-    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    th = spin_thread(ex)
-    made = []
-
-    def start(**params):
-        over = {"corners": ["R00"], "workers": 1, "visit_timeout_s": 1.0,
-                "diagnostics_period_s": 0.2, **params}
-        wf = WavefrontNode(context=ros_context, parameter_overrides=[
-            Parameter(k, value=v) for k, v in over.items()])
-        cam = rclpy.create_node("camera", context=ros_context)
-        made.extend([wf, cam])
-        ex.add_node(wf)
-        ex.add_node(cam)
-        pub = {s: cam.create_publisher(Image, f"aos/wfs/R00/{s}/image", IMAGE_QOS)
-               for s in ("intra", "extra")}
-        corner, vector = [], []
-        cam.create_subscription(CornerWavefront, "aos/wfs/R00/wavefront", corner.append,
-                                OUTPUT_QOS)
-        cam.create_subscription(WavefrontVector, "aos/wfs/wavefront", vector.append,
-                                OUTPUT_QOS)
-        wait_for(lambda: wf.ready, 60, "warm-up")
-        wait_for(lambda: all(p.get_subscription_count() for p in pub.values()), 10,
-                 "discovery")
-        return wf, cam, pub, corner, vector
-
-    th.start()
-    yield start
-    ex.shutdown(timeout_sec=2.0)
-    for n in made:
-        n.destroy_node()
-
+    timeout) and a camera node with its publishers and recorders (conftest's
+    ``r00_graph``)."""
+    return lambda **params: r00_graph(tester="camera", diagnostics_period_s=0.2, **params)
 
 def test_images_stamped_zero_are_refused_and_publish_no_valid_wavefront(graph):
     from conftest import wait_for

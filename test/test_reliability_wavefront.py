@@ -13,14 +13,12 @@ pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 
-from cwfs_msgs.msg import CornerWavefront, WavefrontVector  # noqa: E402
+from cwfs_msgs.msg import WavefrontVector  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.ros.common import IMAGE_QOS, OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
 from cwfs_ros.ros.convert import image_msg  # noqa: E402
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 from cwfs_ros.runtime.pipeline import frame_id_problem  # noqa: E402
 
@@ -33,40 +31,10 @@ def of(msgs, stamp):
 
 
 @pytest.fixture
-def graph(ros_context):
-    """A wavefront node serving R00 and a tester node with its publishers and recorders."""
-    from conftest import spin_thread, wait_for
-
-    ex = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    th = spin_thread(ex)
-    made = []
-
-    def start(**params):
-        over = {"corners": ["R00"], "workers": 1, "visit_timeout_s": 1.0, **params}
-        wf = WavefrontNode(context=ros_context, parameter_overrides=[
-            Parameter(k, value=v) for k, v in over.items()])
-        tester = rclpy.create_node("tester", context=ros_context)
-        made.extend([wf, tester])
-        ex.add_node(wf)
-        ex.add_node(tester)
-        pub = {s: tester.create_publisher(Image, f"aos/wfs/R00/{s}/image", IMAGE_QOS)
-               for s in ("intra", "extra")}
-        corner, vector = [], []
-        tester.create_subscription(CornerWavefront, "aos/wfs/R00/wavefront", corner.append,
-                                   OUTPUT_QOS)
-        tester.create_subscription(WavefrontVector, "aos/wfs/wavefront", vector.append,
-                                   OUTPUT_QOS)
-        wait_for(lambda: wf.ready, 60, "warm-up")
-        wait_for(lambda: all(p.get_subscription_count() for p in pub.values()), 10,
-                 "discovery")
-        return wf, tester, pub, corner, vector
-
-    th.start()
-    yield start
-    ex.shutdown(timeout_sec=2.0)
-    for n in made:
-        n.destroy_node()
-
+def graph(r00_graph):
+    """A wavefront node serving R00 and a tester node with its publishers and recorders
+    (conftest's ``r00_graph``)."""
+    return r00_graph
 
 DONUT = synthetic_donut(160, 60.0, 0.61)
 OTHER = synthetic_donut(160, 58.0, 0.61)  # another exposure: a different picture
