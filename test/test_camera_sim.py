@@ -229,3 +229,29 @@ def test_periodic_visits_skip_while_rendering(ros_domain):
                        for lst in t.images.values())
     finally:
         close()
+
+
+def test_a_corner_subset_is_rendered_and_published_alone(ros_domain):
+    """``corners: [R04]``: only R04's two image topics have a publisher and receive the
+    visit; the truth still covers the four corners. A name that is not a corner stops the
+    node at start."""
+    node, t, close = make_system(ros_domain, corners=["R04"])
+    try:
+        counts = {(c, s): t.node.count_publishers(f"/aos/wfs/{c}/{s}/image")
+                  for c in CORNERS for s in ("intra", "extra")}
+        assert counts == {k: int(k[0] == "R04") for k in counts}, counts
+        assert t.call_trigger().success
+        wait_for(lambda: t.truth and all(t.images[("R04", s)] for s in ("intra", "extra")),
+                 60, "the R04 visit")
+        assert not any(msgs for (c, _), msgs in t.images.items() if c != "R04")
+        assert len(t.truth[0].zernikes_nm) == 76
+    finally:
+        close()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    try:
+        with pytest.raises(ValueError, match="corners must be distinct names"):
+            CameraSimNode(context=ctx, parameter_overrides=[
+                Parameter("corners", value=["R00", "R99"])])
+    finally:
+        ctx.try_shutdown()

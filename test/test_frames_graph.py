@@ -31,6 +31,7 @@ def _diag(node) -> dict[str, str]:
 def test_frames_are_selected_paired_and_combined(ros_context):
     P = Parameter
     cam = CameraSimNode(context=ros_context, parameter_overrides=[
+        P("corners", value=["R00"]),  # the one corner the wavefront node serves
         P("visit_period_s", value=0.0), P("frames", value=True), P("frame_rows", value=1000),
         P("frame_cols", value=1000), P("frame_stars_min", value=2),
         P("frame_stars_max", value=2), P("frame_flux_min", value=3e5),

@@ -74,6 +74,7 @@ from cwfs_ros.ros.common import (
 )
 from cwfs_ros.ros.convert import image_msg
 from cwfs_ros.runtime.corner_pool import guard_pool_workers
+from cwfs_ros.runtime.pipeline import served_corners
 from cwfs_ros.sim.field_truth import field_truth
 from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
@@ -147,6 +148,7 @@ class CameraSimNode(NodeBasics, Node):
         wl = float(p("wavelength_nm"))
         self.wavelength_nm = wl if wl > 0 else band_wavelength_nm(self.band)
         self.frame_id = str(p("frame_id"))
+        self.corners = served_corners(p("corners"))
 
         dof = np.asarray(list(p("initial_dof")), dtype=np.float64).reshape(-1)
         if dof.shape != (N_DOF,) or not np.all(np.isfinite(dof)):
@@ -177,7 +179,7 @@ class CameraSimNode(NodeBasics, Node):
         (nothing arrives before the state exists); returns the visit period [s]."""
         self.pubs = {(c, s): self.create_publisher(Image, image_topic(c, s),
                                                    IMAGE_QOS)
-                     for c in CORNERS for s in SIDES}
+                     for c in self.corners for s in SIDES}
         self.pub_truth = self.create_publisher(SimTruth, TRUTH_TOPIC, OUTPUT_QOS)
         # Reliable, keep-last 10, volatile: the ROS convention for joint_states, and a
         # controller matches each visit's stamp against the angles it has received.
@@ -437,13 +439,13 @@ class CameraSimNode(NodeBasics, Node):
 
     def _render_stamps(self, tel, npix: int, n_photons: float, sky: float,
                        off_max: float, angle_deg: float = 0.0) -> dict:
-        """The 8 one-donut stamps of a visit (sky subtracted), at the telescope fields the
-        rotated corners see."""
+        """The one-donut stamps of a visit, two per corner of ``corners`` (sky subtracted), at
+        the telescope fields the rotated corners see."""
         p = self._param
         # Offsets and per-donut seeds are drawn here, in a fixed order, so the images do
         # not depend on how many render workers there are.
         specs = []
-        for c in CORNERS:
+        for c in self.corners:
             g = self.geometry[c]
             for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
                                     ("extra", g.extra_field_deg, g.extra_offset_mm)):
@@ -458,13 +460,14 @@ class CameraSimNode(NodeBasics, Node):
                             read_noise_e=float(p("read_noise_e")), executor=self._pool)
 
     def _render_frames(self, tel, angle_deg: float = 0.0) -> dict:
-        """The 8 half-chip frames of a visit, several stars each (sky included)."""
+        """The half-chip frames of a visit, two per corner of ``corners``, several stars each
+        (sky included)."""
         p = self._param
         rows, cols = int(p("frame_rows")), int(p("frame_cols"))
         nmin, nmax = int(p("frame_stars_min")), int(p("frame_stars_max"))
         lo, hi = float(p("frame_flux_min")), float(p("frame_flux_max"))
         specs = []
-        for c in CORNERS:
+        for c in self.corners:
             g = self.geometry[c]
             for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
                                     ("extra", g.extra_field_deg, g.extra_offset_mm)):
@@ -500,7 +503,7 @@ class CameraSimNode(NodeBasics, Node):
             failed = stats["visits_failed"] > 0 and "failed" in self.last_status
         values += self.ignored.key_values()
         self.foreign = foreign_publishers(self, [*(image_topic(c, s)
-                                                   for c in CORNERS for s in SIDES),
+                                                   for c in self.corners for s in SIDES),
                                                  TRUTH_TOPIC])
         values.append(("foreign_publishers", "; ".join(self.foreign) or "none"))
         values += self.trust.key_values("correction_publishers")
@@ -565,6 +568,9 @@ def _declare_optics_parameters(d: Declare) -> None:
 def _declare_image_parameters(d: Declare) -> None:
     """Visit cadence and what each stamp holds: photons, sky, offsets, blur, noise."""
     ro = {"read_only": True}
+    d("corners", describe(
+        "Corners whose images are rendered and published (a subset of R00 R04 R40 R44, as "
+        "wavefront_node's corners); SimTruth always covers all four.", **ro))
     d("visit_period_s", describe(
         "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
         "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
