@@ -182,6 +182,20 @@ def test_pair_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
     # Several hundred nm of wavefront, recovered to tens of nm at this photon count.
     assert float(rms_line.split()[2]) < 40.0
     assert np.sqrt(np.sum(saved["truth_nm"] ** 2)) > 150.0
+    # One table (estimate, truth, error, design), and the command that estimates the saved
+    # images again, which gives the same estimate.
+    assert proc.stdout.count("Noll") == 1, proc.stdout
+    again = next(ln for ln in proc.stdout.splitlines() if ln.startswith("the same pair again"))
+    argv = again.split(": ", 1)[1].split()
+    assert argv[:2] == ["cwfs-ros", "estimate"], again
+    rerun = run_cli(*argv[1:], "--json")
+    assert rerun.returncode == 0, rerun.stderr
+    table = {int(ln.split()[0]): float(ln.split()[1]) for ln in proc.stdout.splitlines()
+             if ln.split() and ln.split()[0].isdigit() and len(ln.split()) == 5}
+    got = json.loads(rerun.stdout)
+    z = dict(zip(got["noll"], got["zernikes_nm"], strict=True))
+    assert set(table) == set(range(4, 23))
+    assert all(abs(z[j] - table[j]) < 0.051 for j in table), (z, table)
 
 
 @pytest.mark.ros

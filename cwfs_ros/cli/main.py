@@ -435,19 +435,26 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
                                  subtract_sky=True, rng=rng) for dz in (-1.5, 1.5))
     result = estimate_wavefront(intra, extra, field_intra_deg=field, field_extra_deg=field,
                                 solver=args.solver)
-    print(format_result(result))
+    print(format_result(result, table=False))
     print(format_checks(assess(result, load_instrument("lsst"), 1.5)))
     err = result.zernikes_nm - truth
-    print(f"{'Noll':>4}  {'estimate':>9}  {'truth':>9}  {'error':>7}   (nm)")
-    for j, e, t, d in zip(result.noll, result.zernikes_nm, truth, err, strict=True):
-        print(f"{int(j):>4}  {e:>9.1f}  {t:>9.1f}  {d:>7.1f}")
+    print(f"{'Noll':>4}  {'estimate':>9}  {'truth':>9}  {'error':>7}  {'design':>7}   (nm)")
+    for j, e, t, d, i in zip(result.noll, result.zernikes_nm, truth, err,
+                             result.intrinsic_nm, strict=True):
+        print(f"{int(j):>4}  {e:>9.1f}  {t:>9.1f}  {d:>7.1f}  {i:>7.1f}")
     print(f"RMS error {np.sqrt(np.mean(err**2)):.1f} nm over Z4-Z22")
     png = plot_estimate_truth_design(
         result, truth, args.out / "demo_estimate.png", intra=intra, extra=extra,
         title=f"ray-traced, perturbed LSST pair (batoid) at field ({field[0]:g}, "
               f"{field[1]:g}) deg, {args.photons:g} photons per donut\n{format_hexapods(dof)}")
     np.savez(args.out / "demo_pair.npz", intra=intra, extra=extra, truth_nm=truth, dof=dof)
+    # The images alone, as `estimate` reads them: the way to "your own data".
+    for name, img in (("intra", intra), ("extra", extra)):
+        np.save(args.out / f"{name}.npy", img)
     print(f"report: {png.resolve()}")
+    print(f"the same pair again: cwfs-ros estimate {args.out / 'intra.npy'} "
+          f"{args.out / 'extra.npy'} --field-intra {field[0]:g} {field[1]:g} "
+          f"--field-extra {field[0]:g} {field[1]:g}")
     return 0
 
 
@@ -522,16 +529,17 @@ def _register_batch_subcommand() -> None:
 _register_batch_subcommand()
 
 
-def format_result(result: Any) -> str:
-    """Human-readable table of Z4..Z22 plus a status line."""
+def format_result(result: Any, *, table: bool = True) -> str:
+    """Human-readable table of Z4..Z22 (unless ``table`` is False) plus a status line."""
     lines = [
         f"instrument {result.instrument}, band {result.band} ({result.wavelength_nm:g} nm), "
         f"solver {result.solver}, field ({result.field_deg[0]:.4f}, "
         f"{result.field_deg[1]:.4f}) deg",
-        f"{'Noll':>4}  {'Z (nm)':>10}  {'design (nm)':>11}",
     ]
-    for j, z, d in zip(result.noll, result.zernikes_nm, result.intrinsic_nm, strict=True):
-        lines.append(f"{int(j):>4}  {z:>10.2f}  {d:>11.2f}")
+    if table:
+        lines.append(f"{'Noll':>4}  {'Z (nm)':>10}  {'design (nm)':>11}")
+        for j, z, d in zip(result.noll, result.zernikes_nm, result.intrinsic_nm, strict=True):
+            lines.append(f"{int(j):>4}  {z:>10.2f}  {d:>11.2f}")
     # "settled": the last update fell below the solver's tolerance. It is not a verdict on
     # accuracy (an unsettled estimate ran out of iterations while still moving slightly).
     lines.append(
