@@ -305,7 +305,9 @@ def _run_demo(args: argparse.Namespace) -> int:
         params_files=[sim_params_file(), *args.params], visible=args.visible,
         domain_id=args.domain_id, rotator_angle_deg=args.rotator_angle,
         ros_args=(() if args.verbose else ("--log-level", "warn")) + seeing_args)
-    bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False)
+    # No bar in a log or a pipe: its redraws would be mixed into the table.
+    bar = tqdm(total=args.visits, unit="visit", desc="closed loop", leave=False,
+               disable=not sys.stderr.isatty())
     try:
         run = run_closed_loop(config, workdir=args.out, on_visit=_demo_visit_printer(bar),
                               on_status=lambda m: tqdm.write(m))
