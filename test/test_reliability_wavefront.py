@@ -176,6 +176,10 @@ def test_images_never_taken_are_counted(graph):
         history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.VOLATILE))
     wait_for(lambda: pub.get_subscription_count() > 0, 10, "discovery")
+    # A publisher replaced before the node took any image of the topic: its images are
+    # trusted once the topic has had one publisher for PublisherTrust.settle_s.
+    wait_for(lambda: wf.image_source_problem("R00", "intra") is None, 10,
+             "the replacement publisher trusted")
     frame = np.random.default_rng(9).normal(100.0, 5.0, (160, 160)).astype(np.float32)
     pub.publish(image_msg(frame, T))
     wait_for(lambda: wf.stats["images"] == 1, 10, "the first frame taken")

@@ -557,14 +557,19 @@ class WavefrontNode(ManagedNode):
         if step.pair is not None:
             self._process_pair(step.pair)
 
+    def image_source_problem(self, corner: str, side: str) -> str | None:
+        """Why an image of that corner and side taken now would be ``untrusted_source``, or
+        None (:meth:`_source_refusal`)."""
+        trust = self._image_trust.get((corner, side))
+        return None if trust is None else trust.problem()
+
     def _source_refusal(self, msg: Image, corner: str, side: str) -> Rejection | None:
         """``untrusted_source`` while the image's topic has more than ``max_image_publishers``
         publishers, now or since they were last trusted (:class:`PublisherTrust`: a camera
         that publishes one visit and leaves before its images are taken is still counted;
         fewer are fine: a camera that sent its last visit and left; 0 = no check), naming
         them (docs/reliability.md, Who may act)."""
-        trust = self._image_trust.get((corner, side))
-        why = None if trust is None else trust.problem()
+        why = self.image_source_problem(corner, side)
         if why is None:
             return None
         return Rejection("untrusted_source", f"{side} image of {corner}: {why}: which camera "
