@@ -41,8 +41,12 @@ Building ``H_est`` takes 31-40 s per DoF, 35 min in all (the design reading 1 mi
 column's noise at ``N_RAYS`` (two seeds) is 4-9 nm rss per corner on a 70 nm step; ``±s``
 and ``±2s`` agree to 5-19 nm over the 76 rows of 130-320 nm columns (that noise). The large
 departures from ``H`` are M1M3 B10/B11 (66 -> 165 nm at the worst corner), B19 (4 -> 117),
-M2 B10/B11 and B16/B17; ``A H_23..37`` leaves 48-63 nm of the 440 nm (rss over the 50
-steps) per corner, about the finite-difference noise. One image-loop visit takes 40-60 s.
+M2 B10/B11 and B16/B17; ``A H_23..37`` leaves 48-63 nm of the 416-423 nm (rss over the 50
+steps) per corner, about the finite-difference noise. But the 50 DoF reach only 6 of the 15
+directions of Z23-Z37 at a corner: fitted without it, B8-B11 columns are predicted to 2-20 nm
+of their 23-208 nm, while M1M3 B19 and M2 B16/B17 (80-134 nm) come out at 380-1450 nm. An
+``A`` for every direction (a rotated camera's corners see other combinations) needs steps
+of each Z23-Z37 term itself. One image-loop visit takes 40-60 s.
 
 Usage: .venv/bin/python bench/bench_estimator_model.py [--cache out/estimator_model.npz]
        [--classes bending rigid mixed] [--visits 6] [--models shipped estimator]
