@@ -37,7 +37,8 @@ Seed 2 (``--seed 2``): bending 427 46 28 33 19 22 (15.2x) -> 427 46 25 16 22 15 
 739 49 19 26 31 19 (38.1x) -> 739 55 43 26 28 29 (28.7x). One image-noise draw per run: the
 bending starts gain, the rigid ones lose a little (the hexapod columns of ``H_est`` differ
 from ``H`` by 8-19 nm at the worst corner on a 70 nm step: noise and the estimator's own
-gain, not told apart here).
+gain, not told apart here). ``H_est`` in the bending columns only (``H`` for the hexapods),
+seed 1: rigid 470 25 27 34 26 18 (18.7x), bending 550 198 64 38 19 34 (14.4x).
 
 With ``H_est`` alone (design term as shipped) the bending start gives 550 199 64 36 26 40
 (15.3x); with the design reading alone, 550 199 68 74 48 80 (8.1x): the sensitivity is
