@@ -22,38 +22,10 @@ Then the in-process image loop (one split pair per corner, 1e6 photons, 0.7 arcs
 with the shipped model and with the estimator's, and prints the field error per visit and
 the reduction ``v1 / min(v2..v4)``.
 
-Measured on the shared 2-core machine (2026-12-03, rotator 0, seed-1 starts, 6 visits, field
-error per visit in nm, reduction v1 / min(v2..v4)):
-
-========  =============================  =====  ==============================  =====
-class     shipped model                  red.   estimator's model               red.
-========  =============================  =====  ==============================  =====
-bending   550 199  67  58  65  67        9.5x   550 199  62  25  31  28         21.6x
-rigid     470  24  23  23  24  14        20.2x  470  47  25  29  21  21         18.5x
-mixed     818 306  42  52  49  55        19.6x  818 306  27  26  26  22         30.9x
-========  =============================  =====  ==============================  =====
-
-Seed 2 (``--seed 2``): bending 427 46 28 33 19 22 (15.2x) -> 427 46 25 16 22 15 (26.9x); rigid
-739 49 19 26 31 19 (38.1x) -> 739 55 43 26 28 29 (28.7x). One image-noise draw per run: the
-bending starts gain, the rigid ones lose a little (the hexapod columns of ``H_est`` differ
-from ``H`` by 8-19 nm at the worst corner on a 70 nm step: noise and the estimator's own
-gain, not told apart here). ``H_est`` in the bending columns only (``H`` for the hexapods),
-seed 1: rigid 470 25 27 34 26 18 (18.7x), bending 550 198 64 38 19 34 (14.4x).
-
-With ``H_est`` alone (design term as shipped) the bending start gives 550 199 64 36 26 40
-(15.3x); with the design reading alone, 550 199 68 74 48 80 (8.1x): the sensitivity is
-what matters.
-
-Building ``H_est`` takes 31-40 s per DoF, 35 min in all (the design reading 1 min more). A
-column's noise at ``N_RAYS`` (two seeds) is 4-9 nm rss per corner on a 70 nm step; ``±s``
-and ``±2s`` agree to 5-19 nm over the 76 rows of 130-320 nm columns (that noise). The large
-departures from ``H`` are M1M3 B10/B11 (66 -> 165 nm at the worst corner), B19 (4 -> 117),
-M2 B10/B11 and B16/B17; ``A H_23..37`` leaves 48-63 nm of the 416-423 nm (rss over the 50
-steps) per corner, about the finite-difference noise. But the 50 DoF reach only 6 of the 15
-directions of Z23-Z37 at a corner: fitted without it, B8-B11 columns are predicted to 2-20 nm
-of their 23-208 nm, while M1M3 B19 and M2 B16/B17 (80-134 nm) come out at 380-1450 nm. An
-``A`` for every direction (a rotated camera's corners see other combinations) needs steps
-of each Z23-Z37 term itself. One image-loop visit takes 40-60 s.
+The figures (field error per visit against the shipped model, what each half of the model
+does, the cost, the noise and the aliasing fit) are in docs/closed-loop.md, "A measurement
+model as the estimator reads it". Building ``H_est`` takes about 35 min; one image-loop visit
+40-60 s.
 
 Usage: .venv/bin/python bench/bench_estimator_model.py [--cache out/estimator_model.npz]
        [--classes bending rigid mixed] [--visits 6] [--models shipped estimator]
