@@ -28,7 +28,8 @@ model as the estimator reads it". Building ``H_est`` takes about 35 min; one ima
 40-60 s.
 
 Usage: .venv/bin/python bench/bench_estimator_model.py [--cache out/estimator_model.npz]
-       [--classes bending rigid mixed] [--visits 6] [--models shipped estimator]
+       [--classes bending rigid mixed] [--visits 6] [--seed 1]
+       [--models shipped estimator estimator_h estimator_design estimator_bending]
 The matrix is cached (and resumed) in ``--cache``; the loops take about 5 min per class
 and model.
 """
@@ -207,6 +208,25 @@ class EstimatorModel(OpticalModel):
                        intrinsic_nm=self.design_reading_nm)
 
 
+MODELS = ("shipped", "estimator", "estimator_h", "estimator_design", "estimator_bending")
+
+
+def make_model(name: str, cache: dict) -> OpticalModel:
+    """The controller's model ``name`` (:data:`MODELS`): the shipped one, or the estimator's
+    in whole or in part, to tell what each half does."""
+    if name == "shipped":
+        return OpticalModel("bundled")
+    at0 = OpticalModel("bundled").at(0.0)
+    h, design = h_est(cache), cache["nominal"].mean(axis=0)
+    if name == "estimator_h":
+        design = at0.intrinsic_nm
+    elif name == "estimator_design":
+        h = at0.H
+    elif name == "estimator_bending":
+        h = np.where(np.arange(layout.N_DOF) >= 10, h, at0.H)
+    return EstimatorModel(h, design)
+
+
 def run_image_loop(kind: str, seed: int, visits: int, model: OpticalModel,
                    truth: TruthModel) -> list[float]:
     """Field error [nm] per visit of the in-process image loop (before each correction)."""
@@ -241,7 +261,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cache", type=Path, default=Path("out/estimator_model.npz"))
     p.add_argument("--classes", nargs="*", default=["bending", "rigid", "mixed"])
-    p.add_argument("--models", nargs="*", default=["shipped", "estimator"])
+    p.add_argument("--models", nargs="*", default=["shipped", "estimator"], choices=MODELS,
+                   help="shipped; estimator (H_est and the design reading); estimator_h "
+                        "(H_est only); estimator_design (the design reading only); "
+                        "estimator_bending (H_est in the bending columns only, and the "
+                        "design reading)")
     p.add_argument("--visits", type=int, default=6)
     p.add_argument("--seed", type=int, default=1)
     args = p.parse_args()
@@ -252,8 +276,7 @@ def main() -> None:
     truth = TruthModel()
     for kind in args.classes:
         for name in args.models:
-            model = (OpticalModel("bundled") if name == "shipped" else
-                     EstimatorModel(h_est(cache), cache["nominal"].mean(axis=0)))
+            model = make_model(name, cache)
             f = run_image_loop(kind, args.seed, args.visits, model, truth)
             print(f"{kind:8s} seed {args.seed} {name:9s}: field "
                   + " ".join(f"{x:4.0f}" for x in f)
