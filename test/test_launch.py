@@ -230,3 +230,15 @@ def test_shipped_parameter_files_pass_the_check(ros_domain):
         node.destroy_node()
     finally:
         ctx.try_shutdown()
+
+
+def test_the_controller_accepts_every_pair_count_the_selection_can_claim():
+    """ofc_node refuses a corner claiming more donut pairs than its max_pairs
+    (implausible_uncertainty); the shipped selection must never claim more, or every frames
+    corner with that many pairs would be refused."""
+    yaml = pytest.importorskip("yaml")
+    from cwfs_ros.frames.selection import load_selection_config
+
+    params = yaml.safe_load(L.default_params_file().read_text())
+    assert (params["ofc_node"]["ros__parameters"]["max_pairs"]
+            >= load_selection_config().max_pairs)
