@@ -335,6 +335,15 @@ class _Integrated:
     corner_valid: np.ndarray
     uncertainty_nm: np.ndarray | None
 
+    @classmethod
+    def of(cls, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray,
+           uncertainty_nm: np.ndarray | None) -> _Integrated:
+        """A visit as remembered: flat copies, independent of the caller's arrays."""
+        return cls(int(stamp_ns), np.array(z_nm, dtype=np.float64).reshape(-1),
+                   np.array(corner_valid, dtype=bool).reshape(-1),
+                   None if uncertainty_nm is None
+                   else np.array(uncertainty_nm, dtype=np.float64).reshape(-1))
+
 
 class VisitGuard:
     """One measurement, one correction: refuse a visit already integrated, or too soon.
@@ -391,11 +400,7 @@ class VisitGuard:
     def integrated(self, stamp_ns: int, z_nm: np.ndarray, corner_valid: np.ndarray,
                    uncertainty_nm: np.ndarray | None = None) -> None:
         """Remember a visit whose correction was applied (valid, not a dry run)."""
-        u = None if uncertainty_nm is None else \
-            np.array(uncertainty_nm, dtype=np.float64).reshape(-1)
-        self._seen.append(_Integrated(int(stamp_ns),
-                                      np.array(z_nm, dtype=np.float64).reshape(-1),
-                                      np.array(corner_valid, dtype=bool).reshape(-1), u))
+        self._seen.append(_Integrated.of(stamp_ns, z_nm, corner_valid, uncertainty_nm))
         del self._seen[:-self._history]
         self.last_stamp_ns = int(stamp_ns)
 
@@ -406,10 +411,7 @@ class VisitGuard:
         a restarted node keeps refusing what it integrated (:meth:`restore`)."""
         seen = list(self._seen)
         if pending is not None:
-            seen.append(_Integrated(int(pending[0]), np.asarray(pending[1], float).reshape(-1),
-                                    np.asarray(pending[2], bool).reshape(-1),
-                                    None if pending[3] is None else
-                                    np.asarray(pending[3], float).reshape(-1)))
+            seen.append(_Integrated.of(*pending))
         return {"seen": [{"stamp_ns": v.stamp_ns, "z_nm": v.z_nm.tolist(),
                           "corner_valid": v.corner_valid.tolist(),
                           "uncertainty_nm": None if v.uncertainty_nm is None

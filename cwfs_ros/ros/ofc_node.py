@@ -146,7 +146,9 @@ class OfcNode(ManagedNode):
         """configure: the controller, the input guards, the state file and the topics."""
         with self._lock:
             self.solver = build_solver(self._param)
-            self._claims()  # ConfigError for limits that would refuse every measurement
+            # ConfigError for limits that would refuse every measurement. Like every guard
+            # parameter, the claims' limits are read-only: built once per configure.
+            self.claims = self._claims()
             self.dry_run = bool(self._param("dry_run"))
             self.frame_id = str(self._param("frame_id"))
             self._warm(self.solver)
@@ -346,6 +348,7 @@ class OfcNode(ManagedNode):
         old = getattr(self, "guard", None)
         self.guard = P.VisitGuard(self._param("min_visit_period_s"),
                                   copies=self._copy_rule())
+        self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
         if old is not None:  # a lifecycle cycle: what was integrated stays integrated
             self.guard.carry_over(old)
         self.queue_gaps = SequenceGaps()
@@ -429,16 +432,12 @@ class OfcNode(ManagedNode):
         if problem is not None:
             return None  # the solver path names a layout problem
         unc = np.asarray(msg.uncertainty_nm, dtype=np.float64)
-        copies = self._copy_rule()
         with self._lock:
             # A visit not newer than the last applied one is named as such (published), before
             # the repeat rule would refuse its measurement silently.
             stale = self.solver.visit_stamp_problem(stamp, None)
             if stale is not None:
                 return stale, True
-            self.guard.min_period_s = float(self._param("min_visit_period_s"))
-            self.guard.refuse_repeats = bool(self._param("refuse_repeats"))
-            self.guard.copies = copies
             rate = self.guard.check(stamp, z, valid, unc)
         if not rate.ok:
             self.guard_counts.add(rate.reason, rate.message)
@@ -449,16 +448,15 @@ class OfcNode(ManagedNode):
                            n_pairs=np.asarray(list(msg.n_pairs)),
                            n_sigma=float(self._param("plausibility_n_sigma")),
                            min_corner_rms_nm=float(self._param("min_corner_rms_nm")),
-                           claims=self._claims(), copies=copies)
+                           claims=self.claims, copies=self.guard.copies)
         return (Problem(v.reason, v.message), True) if not v.ok else None
 
-    def _note_integrated(self, msg: WavefrontVector, stamp: int, out: C.OFCResult,
-                         dry: bool) -> None:
-        if out.valid and not dry:
-            z, valid, _ = vector_from_msg(msg)
+    def _note_integrated(self, visit: tuple | None, out: C.OFCResult, dry: bool) -> None:
+        """Remember an applied visit ``(stamp, z, valid, uncertainty)`` for the repeat
+        rule."""
+        if visit is not None and out.valid and not dry:
             with self._lock:
-                self.guard.integrated(stamp, z, valid,
-                                      np.asarray(msg.uncertainty_nm, dtype=np.float64))
+                self.guard.integrated(*visit)
 
     def _guard_values(self) -> list[tuple[str, str]]:
         self.foreign = foreign_publishers(self, [CORRECTION_TOPIC])
@@ -493,8 +491,10 @@ class OfcNode(ManagedNode):
             if guard[1]:
                 self._publish(stamp, self._refusal(guard[0]), self.dry_run)
             return
+        visit = None
         try:
             z, valid, problem = vector_from_msg(msg)
+            visit = (stamp, z, valid, np.asarray(msg.uncertainty_nm, dtype=np.float64))
             with self._lock:
                 self.stats["vectors"] += 1
                 dry = self.dry_run
@@ -508,19 +508,17 @@ class OfcNode(ManagedNode):
                 angle, why = rotator_angle_for(self._param, self.rotator, stamp)
                 before = state_record(self.solver) if self.state_file else None
                 out = self._refusal(problem) if problem is not None else step_controller(
-                    self.solver, z, valid,
-                    uncertainty_nm=np.asarray(msg.uncertainty_nm, dtype=np.float64),
-                    angle_deg=angle, angle_why=why, stamp_ns=stamp, now_ns=now, dry_run=dry)
+                    self.solver, z, valid, uncertainty_nm=visit[3], angle_deg=angle,
+                    angle_why=why, stamp_ns=stamp, now_ns=now, dry_run=dry)
                 if out.valid and not dry:
-                    out = self._persist(out, before, (stamp, z, valid, np.asarray(
-                        msg.uncertainty_nm, dtype=np.float64)))
+                    out = self._persist(out, before, visit)
                 self._log_observability_change(out)
                 self.last_result = out
         except Exception as exc:  # noqa: BLE001 - a message must never crash the node
             out = self._refusal(Problem("internal_error", f"{type(exc).__name__}: {exc}"))
             dry = self.dry_run
         self._publish(stamp, out, dry)
-        self._note_integrated(msg, stamp, out, dry)
+        self._note_integrated(visit, out, dry)
 
     # ------------------------------------------------------------------ rotator and state
     def _on_joints(self, msg: JointState) -> None:
@@ -590,6 +588,12 @@ class OfcNode(ManagedNode):
             self.state_problem = Problem("state_file_unreadable", str(exc))
             self.get_logger().error(f"{exc}; every visit is refused until ~/reset")
 
+    def _save_state(self, visit: tuple | None = None) -> None:
+        """Write the controller state and the integrated visits (``visit``, being applied,
+        last) to the state file (OSError if it cannot)."""
+        save_state(self.state_file, {**state_record(self.solver),
+                                     "integrated": self.guard.record(visit)})
+
     def _persist(self, out: C.OFCResult, before: dict | None, visit: tuple) -> C.OFCResult:
         """Write the state of an applied visit before its correction is published.
 
@@ -605,8 +609,7 @@ class OfcNode(ManagedNode):
         if not self.state_file or before is None:
             return out
         try:
-            save_state(self.state_file, {**state_record(self.solver),
-                                         "integrated": self.guard.record(visit)})
+            self._save_state(visit)
             self.save_problem = None
             return out
         except OSError as exc:
@@ -659,8 +662,7 @@ class OfcNode(ManagedNode):
             saved = ""
             if self.state_file:
                 try:
-                    save_state(self.state_file, {**state_record(self.solver),
-                                                 "integrated": self.guard.record()})
+                    self._save_state()
                     saved = f"; {self.state_file} holds the cleared state"
                     self.save_problem = None
                 except OSError as exc:
