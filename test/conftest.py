@@ -136,6 +136,14 @@ def spin(ros_context):
         n.destroy_node()
 
 
+def of(msgs, stamp: int) -> list:
+    """The messages of ``msgs`` (a list a subscription appends to) whose header stamp is
+    ``stamp`` [ns]."""
+    from cwfs_ros.ros.common import stamp_to_ns
+
+    return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
+
+
 @pytest.fixture
 def r00_graph(ros_context):
     """A wavefront node serving R00 (the bundled parameters but one worker, a 1-s visit

@@ -35,13 +35,7 @@ SEC = 1_000_000_000
 VISIT = 40 * SEC  # a survey visit's period (ofc_node refuses visits closer than 2 s)
 
 
-from conftest import wait_for  # noqa: E402
-
-
-def of(msgs, stamp):
-    return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
-
-
+from conftest import of, wait_for  # noqa: E402
 
 
 def raw_image(stamp, *, h=160, w=160, encoding="32FC1", step=None, data=None):

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import of
 from scipy.ndimage import gaussian_filter
 
 from cwfs_ros.runtime.images import ImageDecodeError, decode_checked
@@ -179,15 +180,11 @@ rclpy = pytest.importorskip("rclpy")
 
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.ros.common import IMAGE_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.common import IMAGE_QOS  # noqa: E402
 from cwfs_ros.ros.convert import image_msg  # noqa: E402
 from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 
 DONUT = synthetic_donut(160, 60.0, 0.61)
-
-
-def of(msgs, stamp):
-    return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
 
 
 @pytest.fixture

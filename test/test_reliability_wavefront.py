@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import of
 
 pytestmark = pytest.mark.ros
 
@@ -17,17 +18,13 @@ from cwfs_msgs.msg import WavefrontVector  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
+from cwfs_ros.ros.common import OUTPUT_QOS  # noqa: E402
 from cwfs_ros.ros.convert import image_msg  # noqa: E402
 from cwfs_ros.runtime.corner_pool import synthetic_donut  # noqa: E402
 from cwfs_ros.runtime.pipeline import frame_id_problem  # noqa: E402
 
 T = 1_750_000_000_000_000_000
 SEC = 1_000_000_000
-
-
-def of(msgs, stamp):
-    return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
 
 
 @pytest.fixture
