@@ -18,6 +18,7 @@ config/sim.yaml, i.e. the shipped defaults (Kalman controller), one visit at a t
 
 Usage: .venv/bin/python bench/bench_closed_loop.py [--seeds 5] [--first-seed 0] [--visits 10]
        [--photons 1e6] [--classes rigid bending mixed] [--no-variants]
+       [--measurement-model design|estimator]
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from cwfs_ros.cli.demo import LoopConfig, LoopRun, run_closed_loop
+from cwfs_ros.ofc.model import MEASUREMENT_MODELS
 from cwfs_ros.ros.launch import sim_params_file
 from cwfs_ros.sim.perturbation import stroke_perturbation
 
@@ -40,8 +42,11 @@ HEXAPODS = [True] * 10 + [False] * 40
 
 def run(dof: np.ndarray, seed: int, a: argparse.Namespace,
         parameters: dict[str, dict[str, Any]] | None = None, angle: float = 0.0) -> LoopRun:
+    parameters = {node: dict(p) for node, p in (parameters or {}).items()}
+    if a.measurement_model:
+        parameters.setdefault("ofc_node", {})["measurement_model"] = a.measurement_model
     cfg = LoopConfig(visits=a.visits, initial_dof=dof, n_photons=a.photons, render_seed=seed,
-                     params_files=[sim_params_file()], parameters=parameters or {},
+                     params_files=[sim_params_file()], parameters=parameters,
                      ros_args=(*QUIET, "-p", f"seeing_fwhm_arcsec:={SEEING:g}"),
                      rotator_angle_deg=angle, keep_images=(), visit_timeout_s=900.0)
     with tempfile.TemporaryDirectory() as tmp:
@@ -82,10 +87,14 @@ def main() -> None:
     ap.add_argument("--photons", type=float, default=1e6)
     ap.add_argument("--classes", nargs="+", default=["rigid", "bending", "mixed"])
     ap.add_argument("--no-variants", action="store_true")
+    ap.add_argument("--measurement-model", choices=MEASUREMENT_MODELS, default=None,
+                    help="ofc_node's measurement_model (default: the shipped one)")
     a = ap.parse_args()
     t0 = time.perf_counter()
     print(f"true wavefront error over the field per visit (nm), {a.photons:g} photons per "
-          f"donut, seeing {SEEING} arcsec, shipped defaults; reduction = v1 / best of v2-v4")
+          f"donut, seeing {SEEING} arcsec, shipped defaults"
+          + (f" but measurement_model {a.measurement_model}" if a.measurement_model else "")
+          + "; reduction = v1 / best of v2-v4")
     print(f"{'run':<34} " + " ".join(f"{'v' + str(k):>6}" for k in range(1, a.visits + 1)))
     targets = np.random.default_rng(2026).uniform(300.0, 1000.0, (a.seeds, len(a.classes)))
     runs: list[LoopRun] = []

@@ -22,6 +22,11 @@ Then the in-process image loop (one split pair per corner, 1e6 photons, 0.7 arcs
 with the shipped model and with the estimator's, and prints the field error per visit and
 the reduction ``v1 / min(v2..v4)``.
 
+``response`` is the model ofc_node ships as ``measurement_model: estimator``: the same idea
+for any rotator angle, from the estimator's measured response to single Zernike terms
+(``config/ofc/estimator_response_r.npz``). It needs no ``H_est``; with ``--angle`` the loop
+runs with the camera turned (``shipped`` and ``response`` only).
+
 The figures (field error per visit against the shipped model, what each half of the model
 does, the cost, the noise and the aliasing fit) are in docs/closed-loop.md, "A measurement
 model as the estimator reads it". Building ``H_est`` takes about 35 min; one image-loop visit
@@ -29,7 +34,8 @@ model as the estimator reads it". Building ``H_est`` takes about 35 min; one ima
 
 Usage: .venv/bin/python bench/bench_estimator_model.py [--cache out/estimator_model.npz]
        [--classes bending rigid mixed] [--visits 6] [--seed 1]
-       [--models shipped estimator estimator_h estimator_design estimator_bending]
+       [--models shipped estimator estimator_h estimator_design estimator_bending response]
+       [--angle 0]
 The matrix is cached (and resumed) in ``--cache``; the loops take about 5 min per class
 and model.
 """
@@ -48,6 +54,7 @@ from cwfs_ros.frames.field_position import load_half_chips
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.model import ModelAtAngle, OpticalModel
+from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.runtime.corner_pool import stamp_uncertainty_nm
 from cwfs_ros.sim.perturbation import stroke_perturbation
 from cwfs_ros.sim.render import RenderSettings, render_donut, true_zernikes_nm
@@ -208,7 +215,8 @@ class EstimatorModel(OpticalModel):
                        intrinsic_nm=self.design_reading_nm)
 
 
-MODELS = ("shipped", "estimator", "estimator_h", "estimator_design", "estimator_bending")
+MODELS = ("shipped", "estimator", "estimator_h", "estimator_design", "estimator_bending",
+          "response")
 
 
 def make_model(name: str, cache: dict) -> OpticalModel:
@@ -216,6 +224,8 @@ def make_model(name: str, cache: dict) -> OpticalModel:
     in whole or in part, to tell what each half does."""
     if name == "shipped":
         return OpticalModel("bundled")
+    if name == "response":
+        return OpticalModel("bundled", measurement="estimator")
     at0 = OpticalModel("bundled").at(0.0)
     h, design = h_est(cache), cache["nominal"].mean(axis=0)
     if name == "estimator_h":
@@ -228,8 +238,11 @@ def make_model(name: str, cache: dict) -> OpticalModel:
 
 
 def run_image_loop(kind: str, seed: int, visits: int, model: OpticalModel,
-                   truth: TruthModel) -> list[float]:
-    """Field error [nm] per visit of the in-process image loop (before each correction)."""
+                   truth: TruthModel, angle_deg: float = 0.0) -> list[float]:
+    """Field error [nm] per visit of the in-process image loop (before each correction), the
+    camera turned by ``angle_deg`` (the stars at the telescope fields the turned corners see,
+    the images and the fields the estimator is given in the camera frame)."""
+    theta = np.deg2rad(angle_deg)
     target = float(np.random.default_rng(2026).uniform(300.0, 1000.0, (5, 3))
                    [seed, CLASS_COLUMN[kind]])
     dof = stroke_perturbation(kind, 1000 + seed, target)
@@ -238,10 +251,11 @@ def run_image_loop(kind: str, seed: int, visits: int, model: OpticalModel,
     field_nm = []
     for v in range(visits):
         field_nm.append(truth.field_error_nm(dof))
-        tel = perturbed_telescope(dof, band="r")
+        tel = perturbed_telescope(dof, band="r", rotator_angle_deg=angle_deg)
         meas, unc = [], []
         for fi, fe, _ in corner_fields():
-            imgs = [render_donut(tel, f, dz, wavelength_nm=WAVELENGTH_NM, npix=160,
+            imgs = [render_donut(tel, tuple(telescope_field_deg(f, theta)[0]), dz,
+                                 wavelength_nm=WAVELENGTH_NM, npix=160,
                                  n_photons=1e6, sky_per_pixel=50, subtract_sky=True, rng=rng,
                                  seeing_fwhm_arcsec=SEEING_ARCSEC,
                                  offset_px=tuple(rng.uniform(-3, 3, 2)))
@@ -251,7 +265,7 @@ def run_image_loop(kind: str, seed: int, visits: int, model: OpticalModel,
             meas.append(r.zernikes_nm)
             unc.append(stamp_uncertainty_nm(r, "lsq"))
         res = ctl.step(np.concatenate(meas), uncertainty_nm=np.concatenate(unc),
-                       stamp_ns=(v + 1) * 40_000_000_000, rotator_angle_deg=0.0)
+                       stamp_ns=(v + 1) * 40_000_000_000, rotator_angle_deg=angle_deg)
         if res.valid:
             dof = dof + res.dof
     return field_nm
@@ -268,17 +282,22 @@ def main() -> None:
                         "design reading)")
     p.add_argument("--visits", type=int, default=6)
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--angle", type=float, default=0.0,
+                   help="rotator angle [deg]; the models measured at 0 only (all but shipped "
+                        "and response) need 0")
     args = p.parse_args()
-    t0 = time.perf_counter()
-    cache = build_estimator_model(args.cache)
-    print(f"estimator model ready in {time.perf_counter() - t0:.0f} s", flush=True)
-    report_model(cache)
+    cache = {}
+    if set(args.models) - {"shipped", "response"}:
+        t0 = time.perf_counter()
+        cache = build_estimator_model(args.cache)
+        print(f"estimator model ready in {time.perf_counter() - t0:.0f} s", flush=True)
+        report_model(cache)
     truth = TruthModel()
     for kind in args.classes:
         for name in args.models:
             model = make_model(name, cache)
-            f = run_image_loop(kind, args.seed, args.visits, model, truth)
-            print(f"{kind:8s} seed {args.seed} {name:9s}: field "
+            f = run_image_loop(kind, args.seed, args.visits, model, truth, args.angle)
+            print(f"{kind:8s} seed {args.seed} rotator {args.angle:g} {name:9s}: field "
                   + " ".join(f"{x:4.0f}" for x in f)
                   + f" nm; reduction {f[0] / min(f[1:4]):4.1f}x", flush=True)
 

@@ -245,6 +245,7 @@ def test_ofc_node_control_reset_dry_run_and_parameters(ros_context, spin):
         ("dof_mask", [True] * 49, "50"),
         ("dof_mask", [False] * 50, "excludes every DoF"),
         ("matrix_source", "ts_ofc", "read-only"),  # a safety guard: set at start only
+        ("measurement_model", "estimator", "read-only"),
         ("method", "pinv", "method"),
         ("band", "q", "band"),
         ("n_modes", 0, "out of range"),

@@ -43,6 +43,7 @@ GUARDS = [
     ("ofc_node", "max_inconsistency", "1000000.0"),
     ("ofc_node", "min_corner_rms_nm", "0.0"),
     ("ofc_node", "matrix_source", "ts_ofc"),
+    ("ofc_node", "measurement_model", "estimator"),
     ("ofc_node", "rotator_angle_source", "topic"),
     ("ofc_node", "vector_publishers", "0"),
     ("wavefront_node", "pairing_tolerance_s", "0.5"),

@@ -14,6 +14,7 @@ import pytest
 from cwfs_ros import layout
 from cwfs_ros.config import config_dir
 from cwfs_ros.ofc import control as C
+from cwfs_ros.ofc.model import double_zernike_at
 from cwfs_ros.sim import perturbed_telescope
 
 DZ_FILE = config_dir() / "ofc" / "sensitivity_dz_bundled.npy"
@@ -43,7 +44,8 @@ def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def test_layout(dz):
-    assert dz.dtype == np.float64 and dz.ndim == 3 and dz.shape[1:] == (23, 50)
+    # pupil Noll 0..37: the controller's Z4..Z22, and Z23..Z37 for the estimator's aliasing
+    assert dz.dtype == np.float64 and dz.ndim == 3 and dz.shape[1:] == (38, 50)
     assert not np.any(dz[0]) and not np.any(dz[:, :4])
     assert np.all(np.isfinite(dz))
 
@@ -67,16 +69,27 @@ def test_matches_batoid_off_the_fit_grid(dz):
 
     def zk(dof):
         tel = perturbed_telescope(dof, "r")
-        return batoid.zernike(tel, thx, thy, wl * 1e-9, jmax=22, eps=EPS, nx=128)[4:23] * wl
+        low = batoid.zernike(tel, thx, thy, wl * 1e-9, jmax=22, eps=EPS, nx=128)[4:23]
+        high = batoid.zernike(tel, thx, thy, wl * 1e-9, jmax=37, eps=EPS, nx=128)[23:38]
+        return np.r_[low, high] * wl
 
-    fresh = np.empty((layout.N_ZK, layout.N_DOF))
+    fresh = np.empty((layout.N_ZK + 15, layout.N_DOF))
     for i in range(layout.N_DOF):
         d = np.zeros(layout.N_DOF)
         d[i] = STEPS[i]
         fresh[:, i] = (zk(d) - zk(-d)) / (2.0 * STEPS[i])
-    rel = _relative(_evaluate(dz, field), fresh)
+    rel = _relative(_evaluate(dz, field), fresh[:layout.N_ZK])
     print(f"\noff-grid field {field[0]}: per-DoF relative difference median "
           f"{np.median(rel):.1e}, rigid max {rel[:10].max():.1e}, max {rel.max():.1e}")
     assert rel[:10].max() < 0.005
     assert np.median(rel) < 0.005
     assert np.delete(rel, STEEP).max() < 0.1 and rel[STEEP].max() < 0.3
+    # Z23..Z37 (the estimator's aliasing), weighed against each column's whole Z4..Z37: a
+    # column with almost no Z23..Z37 may miss its little by a large fraction of it.
+    high = double_zernike_at(dz, field, (23, 37))[0]
+    err = np.linalg.norm(high - fresh[layout.N_ZK:], axis=0) / np.linalg.norm(fresh, axis=0)
+    print(f"Z23-Z37: error per DoF / |column| median {np.median(err):.1e}, rigid max "
+          f"{err[:10].max():.1e}, max {err.max():.1e}")
+    assert err[:10].max() < 0.005
+    assert np.median(err) < 0.005
+    assert err.max() < 0.01

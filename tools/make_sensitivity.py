@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO))
 
 from cwfs_ros import layout  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
+from cwfs_ros.ofc.model import RESPONSE_NOLL_HIGH  # noqa: E402
 from cwfs_ros.sim import (  # noqa: E402
     DOF_NAMES,
     N_DOF,
@@ -81,6 +82,11 @@ DZ_KMAX = 28  # field Zernikes Noll 1..28: complete radial orders 0..6
 DZ_RING_RADII_DEG = (0.379, 0.841, 1.237, 1.535, 1.64, 1.708, 1.75)
 DZ_RING_POINTS = (6, 8, 12, 16, 16, 24, 16)
 DZ_NX = 64  # batoid.zernike pupil grid (the fit, not the grid, limits the accuracy)
+# Pupil terms of the double Zernike: Z4..Z37. The controller's model of the corners and the
+# field uses Z4..Z22; Z23..Z37 are what the estimator aliases into them (the measurement
+# model "estimator", tools/make_estimator_response.py).
+DZ_JMAX = RESPONSE_NOLL_HIGH
+DZ_NJ = DZ_JMAX - layout.NOLL_MIN + 1
 
 
 def corner_fields() -> list[tuple[float, float]]:
@@ -182,21 +188,28 @@ def dz_fields_deg() -> np.ndarray:
 
 
 def dz_zernikes(dof: np.ndarray, fields: np.ndarray, nx: int = DZ_NX) -> np.ndarray:
-    """(n_fields, 19) true Z4..Z22 [nm] on the 2.558..4.18 m annulus (telescope frame)."""
+    """(n_fields, 34) true Z4..Z37 [nm] on the 2.558..4.18 m annulus (telescope frame).
+
+    Z4..Z22 come from a fit of Z1..Z22, as the 76x50 matrix's do, and Z23..Z37 from a fit
+    of Z1..Z37: on a vignetted pupil the terms are not orthogonal, so adding terms to the
+    fit moves the low ones (by about 1e-3 of a column), and the controller's Z4..Z22 stay
+    those of the Z22 fit."""
     import batoid
 
     tel = perturbed_telescope(dof, BAND)
-    out = np.empty((fields.shape[0], layout.N_ZK))
+    out = np.empty((fields.shape[0], DZ_NJ))
     for k, (x, y) in enumerate(fields):
-        zk = batoid.zernike(tel, np.deg2rad(x), np.deg2rad(y), WAVELENGTH_NM * 1e-9, jmax=22,
-                            eps=DZ_EPS, nx=nx)
-        out[k] = np.asarray(zk[4:23]) * WAVELENGTH_NM
+        for jmax, terms in ((layout.NOLL_MAX, slice(0, layout.N_ZK)),
+                            (DZ_JMAX, slice(layout.N_ZK, None))):
+            zk = batoid.zernike(tel, np.deg2rad(x), np.deg2rad(y), WAVELENGTH_NM * 1e-9,
+                                jmax=jmax, eps=DZ_EPS, nx=nx)
+            out[k, terms] = np.asarray(zk[layout.NOLL_MIN:])[terms] * WAVELENGTH_NM
     return out
 
 
 def dz_columns(fields: np.ndarray, nx: int = DZ_NX, verbose: bool = True) -> np.ndarray:
-    """(n_fields, 19, 50) central finite differences [nm per DoF unit] at ``fields``."""
-    out = np.empty((fields.shape[0], layout.N_ZK, N_DOF))
+    """(n_fields, 34, 50) central finite differences [nm per DoF unit] at ``fields``."""
+    out = np.empty((fields.shape[0], DZ_NJ, N_DOF))
     t0 = time.perf_counter()
     for i in range(N_DOF):
         d = np.zeros(N_DOF)
@@ -208,36 +221,36 @@ def dz_columns(fields: np.ndarray, nx: int = DZ_NX, verbose: bool = True) -> np.
 
 
 def fit_dz(fields: np.ndarray, values: np.ndarray, kmax: int = DZ_KMAX) -> np.ndarray:
-    """Field-Zernike fit of ``values`` (n_fields, 19, 50) -> (kmax + 1, 23, 50) double-Zernike
+    """Field-Zernike fit of ``values`` (n_fields, 34, 50) -> (kmax + 1, 38, 50) double-Zernike
     coefficients ``[k, j, d]`` (k = 0 and j = 0..3 zero).
 
-    Per DoF, a least-squares fit with each field point weighted by 1 / |column there|: the
-    relative error is balanced over the field, so a column that grows steeply near the edge
-    does not buy its edge values with the rest of the field (M1M3 mode 19 at the corners:
-    35 % instead of 67 % unweighted)."""
+    Per DoF, a least-squares fit with each field point weighted by 1 / |column there| (of
+    Z4..Z22, the terms the controller models): the relative error is balanced over the
+    field, so a column that grows steeply near the edge does not buy its edge values with the
+    rest of the field (M1M3 mode 19 at the corners: 35 % instead of 67 % unweighted)."""
     import galsim
 
     basis = galsim.zernike.zernikeBasis(kmax, fields[:, 0], fields[:, 1],
                                         R_outer=DZ_FIELD_RADIUS_DEG)[1:]  # (kmax, n)
-    out = np.zeros((kmax + 1, layout.NOLL_MAX + 1, N_DOF))
+    out = np.zeros((kmax + 1, DZ_JMAX + 1, N_DOF))
     for d in range(N_DOF):
-        w = 1.0 / np.maximum(np.linalg.norm(values[:, :, d], axis=1), 1e-12)
+        w = 1.0 / np.maximum(np.linalg.norm(values[:, :layout.N_ZK, d], axis=1), 1e-12)
         coef, *_ = np.linalg.lstsq((basis * w).T, values[:, :, d] * w[:, None], rcond=None)
         out[1:, layout.NOLL_MIN:, d] = coef
     return out
 
 
 def eval_dz(dz: np.ndarray, fields: np.ndarray) -> np.ndarray:
-    """(n_fields, 19, 50) of a (k, 23, 50) double Zernike, with galsim.DoubleZernike."""
+    """(n_fields, 34, 50) of a (k, 38, 50) double Zernike, with galsim.DoubleZernike."""
     import galsim
 
-    out = np.empty((fields.shape[0], layout.N_ZK, N_DOF))
+    out = np.empty((fields.shape[0], dz.shape[1] - layout.NOLL_MIN, N_DOF))
     for d in range(N_DOF):
         dzd = galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0.0,
                                            uv_outer=DZ_FIELD_RADIUS_DEG,
                                            xy_inner=DZ_PUPIL_INNER_M, xy_outer=DZ_PUPIL_OUTER_M)
         for k, zk in enumerate(dzd(fields[:, 0], fields[:, 1])):
-            out[k, :, d] = np.asarray(zk.coef)[layout.NOLL_MIN:layout.NOLL_MAX + 1]
+            out[k, :, d] = np.asarray(zk.coef)[layout.NOLL_MIN:dz.shape[1]]
     return out
 
 
@@ -246,7 +259,7 @@ def dz_checks(dz: np.ndarray, nx: int = DZ_NX) -> list[str]:
     fresh finite difference at off-grid field points."""
     lines = []
     corners = C.corner_mid_field_points_deg()
-    at_corners = eval_dz(dz, corners).reshape(-1, N_DOF)
+    at_corners = eval_dz(dz, corners)[:, :layout.N_ZK].reshape(-1, N_DOF)
     bundled = C.SensitivityMatrix.from_bundled().matrix_nm
     rel = np.linalg.norm(at_corners - bundled, axis=0) / np.linalg.norm(bundled, axis=0)
     worst = ", ".join(f"{DOF_NAMES[i]} {rel[i]:.2f}" for i in np.argsort(-rel)[:6])
@@ -259,11 +272,14 @@ def dz_checks(dz: np.ndarray, nx: int = DZ_NX) -> list[str]:
     fresh = dz_columns(pts, nx=nx, verbose=False)
     model = eval_dz(dz, pts)
     for k, p in enumerate(pts):
-        rel = (np.linalg.norm(model[k] - fresh[k], axis=0)
-               / np.linalg.norm(fresh[k], axis=0))
-        lines.append(f"off-grid field ({p[0]:+.4f}, {p[1]:+.4f}) deg vs a fresh finite "
-                     f"difference: per-DoF relative difference median {np.median(rel):.2e}, "
-                     f"max {rel.max():.2e} ({DOF_NAMES[int(np.argmax(rel))]})")
+        for label, j in (("Z4-Z22", slice(0, layout.N_ZK)),
+                         (f"Z23-Z{DZ_JMAX}", slice(layout.N_ZK, None))):
+            rel = (np.linalg.norm(model[k, j] - fresh[k, j], axis=0)
+                   / np.linalg.norm(fresh[k, j], axis=0))
+            lines.append(f"off-grid field ({p[0]:+.4f}, {p[1]:+.4f}) deg vs a fresh finite "
+                         f"difference, {label}: per-DoF relative difference median "
+                         f"{np.median(rel):.2e}, max {rel.max():.2e} "
+                         f"({DOF_NAMES[int(np.argmax(rel))]})")
     return lines
 
 
@@ -284,8 +300,10 @@ Made by `tools/make_sensitivity.py --dz` (this project) on {_dt.date.today().iso
 
 - **What:** the wavefront sensitivity as a double Zernike: float64 array of shape
   {dz.shape}, index `[k, j, d]`: k the field Noll index (1..{dz.shape[0] - 1}; row 0 zero), j
-  the pupil Noll index (4..22; 0..3 zero), d the DoF. **nm of wavefront (OPD) per DoF unit**
-  (µm, or degrees for rx/ry), **wavefront sign** (`wavefront_change = A @ dof_change`),
+  the pupil Noll index (4..{dz.shape[1] - 1}; 0..3 zero; the controller models 4..22, and
+  23..{dz.shape[1] - 1} are what the estimator aliases into them), d the DoF. **nm of
+  wavefront (OPD) per DoF unit** (µm, or degrees for rx/ry), **wavefront sign**
+  (`wavefront_change = A @ dof_change`),
   **batoid_rubin/OCS DoF convention** (`cwfs_msgs/DofCorrection`, and
   `cwfs_ros.sim.perturbed_telescope`'s default), telescope frame (unrotated camera).
 - **Evaluate** with `galsim.zernike.DoubleZernike(dz[:, :, d], uv_inner=0, uv_outer=
@@ -294,8 +312,8 @@ Made by `tools/make_sensitivity.py --dz` (this project) on {_dt.date.today().iso
   ts_ofc's matrix (`configurations/lsst.yaml` radii): its `.coef[4:23]` are nm per DoF unit.
 - **How:** central finite differences (half-steps as `sensitivity_bundled_r.npy`: M2 dz 10 µm,
   dx/dy 100 µm, rx/ry 0.005 deg; camera dz 10 µm, dx/dy 100 µm, rx/ry 0.01 deg; bending
-  0.05 µm) of batoid.zernike (r band, `LSST_r.yaml`, {WAVELENGTH_NM:g} nm, annular Noll 4..22
-  with eps {DZ_EPS:.5f} = 2.558 / 4.18, nx={nx}) of the in-focus
+  0.05 µm) of batoid.zernike (r band, `LSST_r.yaml`, {WAVELENGTH_NM:g} nm, annular Noll
+  4..{DZ_JMAX} with eps {DZ_EPS:.5f} = 2.558 / 4.18, nx={nx}) of the in-focus
   `perturbed_telescope(dof, "r")`, at {fields.shape[0]} field points (the centre and rings
   at {", ".join(f"{r:g}" for r in DZ_RING_RADII_DEG)} deg of
   {", ".join(str(n) for n in DZ_RING_POINTS)} points: the five Gaussian-quadrature radii, one
@@ -320,6 +338,9 @@ def main_dz(check: bool, nx: int) -> int:
     wall = time.perf_counter() - t0
     if check:
         old = np.load(DZ_NPY)
+        if old.shape != dz.shape:
+            print(f"bundled shape {old.shape} != recomputed {dz.shape}")
+            return 1
         err = np.abs(old - dz).max()
         print(f"max |bundled - recomputed| = {err:.3g} nm per DoF unit")
         print("\n".join(dz_checks(old, nx)))

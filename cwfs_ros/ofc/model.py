@@ -13,6 +13,19 @@ reports Zernikes in the camera frame. So, per rotator angle ``θ``:
 
 A measurement ``y_cam`` is compared with the model as ``zrot @ y_cam - intrinsic = H x``.
 
+With the measurement model ``estimator`` the corner rows are what the wavefront estimator
+reports rather than the true wavefront (``config/ofc/estimator_response_r.npz``, from
+tools/make_estimator_response.py). Per corner, in the camera frame, the estimator reads
+``z + (G - I) dz_4..22 + A dz_23..37 + b`` (``dz`` the change from the design), so in the
+telescope frame
+
+* ``H_c = Rz G Rzᵀ H_c(4..22) + Rz A Rz'ᵀ H_c(23..37)``, with ``Rz``, ``Rz'`` the camera ->
+  telescope rotations of Z4..Z22 and Z23..Z37 and ``H_c(23..37)`` the bundled double
+  Zernike's Z23..Z37 at the corner (whatever the source of Z4..Z22: ts_ofc's stops at Z28);
+* ``intrinsic_c = design_c + Rz b``.
+
+The field rows (``F``, the image quality the controller minimises) stay the true wavefront.
+
 The sensitivity at any field point comes from a double Zernike, evaluated here as one matrix
 product with the field-Zernike basis (galsim's ``DoubleZernike`` object per DoF takes 5 s for
 the 31 points; this takes milliseconds). Sources: ``ts_ofc`` (Rubin's yaml) and ``bundled``
@@ -35,11 +48,26 @@ from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc import rotation
 from cwfs_ros.ofc.field import gq_field_points_deg, gq_weights
 
-__all__ = ["BUNDLED_DZ_FILENAME", "ModelAtAngle", "OpticalModel", "double_zernike_at"]
+__all__ = ["BUNDLED_DZ_FILENAME", "ESTIMATOR_RESPONSE_FILENAME", "MEASUREMENT_MODELS",
+           "RESPONSE_NOLL_HIGH", "EstimatorResponse", "ModelAtAngle", "OpticalModel",
+           "double_zernike_at", "estimator_response"]
 
-#: This project's double-Zernike sensitivity, (k_field, 23, 50) nm per DoF unit (Noll pupil
-#: index 0..22), wavefront sign, batoid_rubin DoF convention (tools/make_sensitivity.py).
+#: This project's double-Zernike sensitivity, (k_field, 38, 50) nm per DoF unit (Noll pupil
+#: index 0..37: the controller's Z4..Z22 and the Z23..Z37 the estimator aliases into them),
+#: wavefront sign, batoid_rubin DoF convention (tools/make_sensitivity.py).
 BUNDLED_DZ_FILENAME = "sensitivity_dz_bundled.npy"
+
+#: How the estimator reads the wavefront at each corner, camera frame (G, A, b; see
+#: tools/make_estimator_response.py), in ``config/ofc``.
+ESTIMATOR_RESPONSE_FILENAME = "estimator_response_r.npz"
+ESTIMATOR_RESPONSE_BAND = "r"
+
+#: The highest pupil Noll index of the estimator's response (aliasing from Z23..this).
+RESPONSE_NOLL_HIGH = 37
+
+#: What the controller compares a measurement with: ``design``, the true wavefront's
+#: Z4-Z22; ``estimator``, the same as the estimator reads it (gain, aliasing and offset).
+MEASUREMENT_MODELS = ("design", "estimator")
 
 
 @dataclass(frozen=True)
@@ -70,8 +98,10 @@ class ModelAtAngle:
         return (y_cam.reshape(-1, layout.N_ZK) @ self.zrot.T).reshape(-1)
 
 
-def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray) -> np.ndarray:
-    """Pupil Z4..Z22 per DoF at field points: (n, 19, n_dof) from a (k, j, n_dof) double Zernike.
+def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray,
+                      noll: tuple[int, int] = (layout.NOLL_MIN, layout.NOLL_MAX)) -> np.ndarray:
+    """Pupil Z_noll[0]..Z_noll[1] per DoF at field points: (n, nj, n_dof) from a (k, j, n_dof)
+    double Zernike (default Z4..Z22, nj = 19).
 
     Same convention as galsim's ``DoubleZernike`` with the field annulus of ts_ofc's
     ``configurations/lsst.yaml`` (which :func:`cwfs_ros.ofc.control._eval_double_zernike`
@@ -82,7 +112,10 @@ def double_zernike_at(dz: np.ndarray, fields_deg: np.ndarray) -> np.ndarray:
     basis = galsim.zernike.zernikeBasis(dz.shape[0] - 1, f[:, 0], f[:, 1],
                                         R_outer=cfg.field_outer_deg,
                                         R_inner=cfg.field_inner_deg)  # (k, n)
-    pupil = dz[:, layout.NOLL_MIN:layout.NOLL_MAX + 1, :]  # (k, 19, d)
+    if dz.shape[1] <= noll[1]:
+        raise ConfigError(f"the double Zernike stops at pupil Noll {dz.shape[1] - 1}; "
+                          f"Z{noll[1]} is needed")
+    pupil = dz[:, noll[0]:noll[1] + 1, :]  # (k, nj, d)
     return np.einsum("kn,kjd->njd", basis, pupil)
 
 
@@ -125,6 +158,54 @@ def _bundled_dz_available() -> bool:
     return (C.ofc_config_dir() / BUNDLED_DZ_FILENAME).is_file()
 
 
+@dataclass(frozen=True)
+class EstimatorResponse:
+    """How the estimator reads the wavefront at each corner, camera frame (read-only arrays):
+    ``z_est = z + (G - I) dz_4..22 + A dz_23..37 + b``, ``dz`` the change from the design."""
+
+    G: np.ndarray  # (4, 19, 19) read per true nm
+    A: np.ndarray  # (4, 19, 15) read Z4..Z22 per true nm of Z23..Z37
+    b_nm: np.ndarray  # (4, 19) reading of the design less the design [nm]
+
+
+@lru_cache(maxsize=1)
+def estimator_response() -> EstimatorResponse:
+    """The shipped :class:`EstimatorResponse` (``config/ofc/estimator_response_r.npz``);
+    ConfigError if missing or malformed."""
+    path = C.ofc_config_dir() / ESTIMATOR_RESPONSE_FILENAME
+    n_high = RESPONSE_NOLL_HIGH - layout.NOLL_MAX
+    shapes = {"G": (layout.N_CORNERS, layout.N_ZK, layout.N_ZK),
+              "A": (layout.N_CORNERS, layout.N_ZK, n_high), "b": (layout.N_CORNERS, layout.N_ZK)}
+    try:
+        with np.load(path) as f:
+            arrays = {k: np.array(f[k], dtype=np.float64) for k in shapes}
+    except (OSError, KeyError, ValueError) as exc:
+        raise ConfigError(f"{path}: the estimator's response is unreadable ({exc}); the "
+                          "measurement model 'estimator' needs it "
+                          "(tools/make_estimator_response.py)") from exc
+    for k, shape in shapes.items():
+        a = arrays[k]
+        if a.shape != shape or not np.all(np.isfinite(a)):
+            raise ConfigError(f"{path}: {k} must be finite of shape {shape}, got {a.shape}")
+        a.setflags(write=False)
+    return EstimatorResponse(arrays["G"], arrays["A"], arrays["b"])
+
+
+def _as_estimator_reads(H: np.ndarray, intrinsic_nm: np.ndarray, high: np.ndarray,
+                        theta_rad: float, zrot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, intrinsic) of the corners as the estimator reads them (the module docstring's
+    formula): ``high`` (4, 15, 50) is Z23..Z37 per telescope-frame DoF unit at the corners."""
+    resp = estimator_response()
+    zrot_high = rotation.zernike_rotation_matrix(theta_rad, layout.NOLL_MAX + 1,
+                                                 RESPONSE_NOLL_HIGH)
+    h = H.reshape(layout.N_CORNERS, layout.N_ZK, -1)
+    g_tel = zrot @ resp.G @ zrot.T  # (4, 19, 19)
+    a_tel = zrot @ resp.A @ zrot_high.T  # (4, 19, 15)
+    h_read = g_tel @ h + a_tel @ high
+    intr = intrinsic_nm.reshape(layout.N_CORNERS, layout.N_ZK) + resp.b_nm @ zrot.T
+    return h_read.reshape(H.shape), intr.reshape(-1)
+
+
 class OpticalModel:
     """The controller's model of the telescope, cached per rotator-angle bin.
 
@@ -132,15 +213,28 @@ class OpticalModel:
     ----------
     source : ``"bundled"`` or ``"ts_ofc"`` (the sensitivity data).
     band : band of the design wavefront subtracted (``u g r i z y ref``).
+    measurement : :data:`MEASUREMENT_MODELS`: the corners' true wavefront (``design``) or
+        what the estimator reads of it (``estimator``, the module docstring).
     angle_bin_deg : the rotator angle is rounded to this before the model is built; an
         angle's model is cached (``cache_size`` bins: every 0.25 deg bin of the rotator's
         whole range fits, about 40 kB each, 80 MB at most).
     """
 
     def __init__(self, source: str = "bundled", band: str = "r", *,
-                 angle_bin_deg: float = 0.25, cache_size: int = 2048) -> None:
+                 angle_bin_deg: float = 0.25, cache_size: int = 2048,
+                 measurement: str = "design") -> None:
         if source not in C.MATRIX_SOURCES:
             raise ConfigError(f"matrix_source must be one of {C.MATRIX_SOURCES}, got {source!r}")
+        if measurement not in MEASUREMENT_MODELS:
+            raise ConfigError(f"measurement_model must be one of {MEASUREMENT_MODELS}, got "
+                              f"{measurement!r}")
+        self.measurement = measurement
+        if measurement == "estimator":
+            if band != ESTIMATOR_RESPONSE_BAND:
+                raise ConfigError(f"measurement_model estimator: the estimator's response is "
+                                  f"measured in band {ESTIMATOR_RESPONSE_BAND}, not {band!r}")
+            estimator_response()  # a missing or malformed file fails here, at configure
+            self._high_dz = _dz_nm("bundled")
         if not (np.isfinite(angle_bin_deg) and 0 < angle_bin_deg <= 5):
             raise ConfigError(f"angle_bin_deg must be in (0, 5], got {angle_bin_deg!r}")
         self.source = source
@@ -177,8 +271,13 @@ class OpticalModel:
         fields = rotation.telescope_field_deg(self.corner_fields_cam_deg, theta)
         zrot = rotation.zernike_rotation_matrix(theta)
         dofrot = rotation.dof_rotation_matrix(theta)
-        H = self._corner_matrix(fields, angle_deg) @ dofrot
+        H = self._corner_matrix(fields, angle_deg)
         intr = double_zernike_at(_intrinsic_dz_nm(self.band), fields).reshape(-1)
+        if self.measurement == "estimator":
+            high = double_zernike_at(self._high_dz, fields,
+                                     (layout.NOLL_MAX + 1, RESPONSE_NOLL_HIGH))
+            H, intr = _as_estimator_reads(H, intr, high, theta, zrot)
+        H = H @ dofrot
         arrays = [np.ascontiguousarray(a, dtype=np.float64)
                   for a in (fields, zrot, dofrot, H, intr)]
         for a in arrays:

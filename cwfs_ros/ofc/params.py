@@ -35,6 +35,9 @@ def controller_from_params(get: Callable[[str], Any]) -> C.OFCSolver:
         raise ConfigError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
     base = C.solver_from_params(get)  # every shared parameter checked in one place
     if kind == "pid":
+        if str(get("measurement_model")) != "design":
+            raise ConfigError("measurement_model estimator needs controller kalman: the pid "
+                              "controller has a fixed corner matrix")
         return base
     values = {}
     for name in KALMAN_PARAM_RANGES:
@@ -44,7 +47,8 @@ def controller_from_params(get: Callable[[str], Any]) -> C.OFCSolver:
         values[name] = float(v)
     settings = KalmanSettings(**values)
     model = OpticalModel(str(get("matrix_source")), base.band or "r",
-                         angle_bin_deg=float(get("angle_bin_deg")))
+                         angle_bin_deg=float(get("angle_bin_deg")),
+                         measurement=str(get("measurement_model")))
     return KalmanOFC(model, settings, dof_mask=base.dof_mask, clip_range=base.clip_range,
                      max_step=base.max_step, allow_partial=base.allow_partial,
                      max_abs_zernike_nm=base.max_abs_zernike_nm,

@@ -123,8 +123,8 @@ GUARD_PARAMETERS: dict[str, frozenset[str]] = {
     "wavefront_node": frozenset({"pairing_tolerance_s", "max_pending_mb", "max_future_s",
                                  "max_image_publishers"}),
     "ofc_node": frozenset({
-        "controller", "matrix_source", "allow_partial", "max_step_scale", "clip_to_range",
-        "max_condition", "max_abs_zernike_nm", "max_future_s", "max_inconsistency",
+        "controller", "matrix_source", "measurement_model", "allow_partial", "max_step_scale",
+        "clip_to_range", "max_condition", "max_abs_zernike_nm", "max_future_s", "max_inconsistency",
         "min_visit_period_s", "refuse_repeats", "plausibility_margin_nm",
         "plausibility_n_sigma", "min_corner_rms_nm", "repeat_fraction", "repeat_floor_nm",
         "min_uncertainty_nm", "max_uncertainty_nm", "max_pairs", "rotator_angle_source",

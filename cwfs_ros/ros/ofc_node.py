@@ -67,6 +67,7 @@ from cwfs_ros.layout import CORRECTION_TOPIC, JOINT_TOPIC, VECTOR_TOPIC
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc import plausibility as P
 from cwfs_ros.ofc.kalman import KALMAN_PARAM_RANGES, KalmanOFC
+from cwfs_ros.ofc.model import MEASUREMENT_MODELS
 from cwfs_ros.ofc.params import (
     CONTROLLERS,
     controller_from_params,
@@ -107,6 +108,7 @@ MATRIX_SOURCES = C.MATRIX_SOURCES
 _SOLVER_PARAMS = ("controller", "band", "matrix_source", "method", "n_modes", "alpha", "weights",
                   "kp", "ki", "dof_mask", "allow_partial", "max_step_scale", "clip_to_range",
                   "max_condition", "max_abs_zernike_nm", "max_future_s", "angle_bin_deg",
+                  "measurement_model",
                   *KALMAN_PARAM_RANGES)
 
 
@@ -180,7 +182,8 @@ class OfcNode(ManagedNode):
         self.srv = self.create_service(Trigger, "~/reset", self._on_reset)
         self.get_logger().info(
             f"OFC configured: controller {self._param('controller')}, matrix "
-            f"{self._param('matrix_source')}, band {self.solver.band}, rotator "
+            f"{self._param('matrix_source')}, measurement model "
+            f"{self._param('measurement_model')}, band {self.solver.band}, rotator "
             f"{self._param('rotator_angle_source')}, allow_partial "
             f"{self.solver.allow_partial}, dry_run {self.dry_run}, state_file "
             f"{self.state_file or '(none)'}")
@@ -284,6 +287,11 @@ class OfcNode(ManagedNode):
         d("angle_bin_deg", describe(
             "(kalman) The model is built per rotator-angle bin of this width [deg] and cached.",
             fp_range=(0.01, 5.0)))
+        d("measurement_model", describe(
+            "(kalman) design: the corners' Zernikes are compared with the true wavefront's; "
+            "estimator: with the wavefront as the estimator reads it (gain, aliasing of "
+            "Z23-Z37 and offset, config/ofc/estimator_response_r.npz; band r only).",
+            constraints=" | ".join(MEASUREMENT_MODELS)))
 
     def _declare_rotator_and_state(self, d) -> None:
         d("rotator_angle_source", describe(
@@ -688,6 +696,7 @@ class OfcNode(ManagedNode):
             values = [("state", "ready"), ("lifecycle", lifecycle),
                       ("controller", self._param("controller")),
                       ("matrix_source", self._param("matrix_source")),
+                      ("measurement_model", self._param("measurement_model")),
                       ("method", s.method), ("n_modes", s.n_modes), ("kp", s.kp), ("ki", s.ki),
                       ("band", s.band), ("allow_partial", s.allow_partial),
                       ("rotator_angle_source", self._param("rotator_angle_source")),

@@ -332,25 +332,31 @@ def _stamp_positions(rays: TracedRays, telescope: batoid.Optic,
     """Continuous pixel coordinates (pixel i spans [i, i+1)) of the rays that reached the
     detector: relative to the stamp's reference point (``s.centre``), blurred by the seeing
     (independent Gaussian offsets per ray), and placed so that the reference point lands at
-    ``npix / 2 + offset_px``."""
-    x = rays.x[rays.ok]
-    y = rays.y[rays.ok]
+    ``npix / 2 + offset_px``.
+
+    The seeing offsets are drawn for every traced ray, vignetted or not, and then masked:
+    two renders with the same seed (a finite difference, ``+h`` and ``-h``) then give each
+    pupil ray the same offset even where a step changes which rays are vignetted. Drawing
+    them for the surviving rays only would shift every later ray's offset there, and the
+    difference of the two images would carry seeing noise of the whole donut."""
+    ok = rays.ok
     if not isinstance(s.centre, str):
         x0, y0 = _pair(s.centre)
     elif s.centre == "chief":
         x0, y0 = rays.chief_x, rays.chief_y
     else:
-        x0, y0 = (float(np.mean(x)), float(np.mean(y))) if x.size else (0.0, 0.0)
+        x0, y0 = ((float(np.mean(rays.x[ok])), float(np.mean(rays.y[ok]))) if ok.any()
+                  else (0.0, 0.0))
     pix_m = float(s.pixel_um) * 1e-6
-    xs = (x - x0) / pix_m
-    ys = (y - y0) / pix_m
+    xs = (rays.x - x0) / pix_m
+    ys = (rays.y - y0) / pix_m
     if s.seeing_fwhm_arcsec > 0:
         scale = plate_scale_um_per_arcsec(telescope, field_deg, wavelength_nm=s.wavelength_nm)
         sigma_px = s.seeing_fwhm_arcsec / FWHM_PER_SIGMA * scale / float(s.pixel_um)
         xs = xs + rng.normal(0.0, sigma_px, xs.size)
         ys = ys + rng.normal(0.0, sigma_px, ys.size)
-    xs += 0.5 * s.npix + float(s.offset_px[0])
-    ys += 0.5 * s.npix + float(s.offset_px[1])
+    xs = xs[ok] + (0.5 * s.npix + float(s.offset_px[0]))
+    ys = ys[ok] + (0.5 * s.npix + float(s.offset_px[1]))
     return xs, ys
 
 
