@@ -27,10 +27,8 @@ for any rotator angle, from the estimator's measured response to single Zernike 
 (``config/ofc/estimator_response_r.npz``). It needs no ``H_est``; with ``--angle`` the loop
 runs with the camera turned (``shipped`` and ``response`` only).
 
-The figures (field error per visit against the shipped model, what each half of the model
-does, the cost, the noise and the aliasing fit) are in docs/closed-loop.md, "A measurement
-model as the estimator reads it". Building ``H_est`` takes about 35 min; one image-loop visit
-40-60 s.
+The figures are in docs/closed-loop.md, "The measurement model ``estimator``". Building
+``H_est`` takes about 35 min; one image-loop visit 40-60 s.
 
 Usage: .venv/bin/python bench/bench_estimator_model.py [--cache out/estimator_model.npz]
        [--classes bending rigid mixed] [--visits 6] [--seed 1]
