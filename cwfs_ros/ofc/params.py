@@ -27,18 +27,16 @@ def controller_from_params(get: Callable[[str], Any]) -> C.OFCSolver:
     """The controller of ofc_node's parameter values ``get(name) -> value``.
 
     ``controller: pid`` is :func:`cwfs_ros.ofc.control.solver_from_params`. ``kalman`` takes
-    the same checks, masks and limits plus the :class:`KalmanSettings` parameters and
-    ``angle_bin_deg``. Raises ConfigError naming the problem.
+    the same checks, masks and limits plus the :class:`KalmanSettings` parameters,
+    ``angle_bin_deg`` and ``measurement_model`` (which ``pid`` ignores). Raises ConfigError
+    naming the problem.
     """
     kind = str(get("controller"))
     if kind not in CONTROLLERS:
         raise ConfigError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
     base = C.solver_from_params(get)  # every shared parameter checked in one place
     if kind == "pid":
-        if str(get("measurement_model")) != "design":
-            raise ConfigError("measurement_model estimator needs controller kalman: the pid "
-                              "controller has a fixed corner matrix")
-        return base
+        return base  # ts_ofc's scheme as ts_ofc has it: no measurement model
     values = {}
     for name in KALMAN_PARAM_RANGES:
         v = get(name)

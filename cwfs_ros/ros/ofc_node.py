@@ -290,7 +290,8 @@ class OfcNode(ManagedNode):
         d("measurement_model", describe(
             "(kalman) design: the corners' Zernikes are compared with the true wavefront's; "
             "estimator: with the wavefront as the estimator reads it (gain, aliasing of "
-            "Z23-Z37 and offset, config/ofc/estimator_response_r.npz; band r only).",
+            "Z23-Z37 and offset, config/ofc/estimator_response_r.npz; band r only). pid "
+            "ignores it.",
             constraints=" | ".join(MEASUREMENT_MODELS)))
 
     def _declare_rotator_and_state(self, d) -> None:
