@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from cwfs_ros import layout
-from cwfs_ros.config import config_dir, load_yaml
+from cwfs_ros.cli.replay import node_parameters
+from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
 from cwfs_ros.frames.field_position import load_half_chips
 from cwfs_ros.ofc import model as M
@@ -125,5 +126,5 @@ def test_the_estimators_model_is_refused_where_it_does_not_hold(tmp_path, monkey
 
 def _defaults_with(values: dict):
     """``get(name)``: ``values``, else ofc_node's shipped default."""
-    shipped = load_yaml(str(config_dir() / "params.yaml"))["ofc_node"]["ros__parameters"]
-    return lambda name: values.get(name, shipped.get(name))
+    shipped = node_parameters("ofc_node")
+    return lambda name: values.get(name, shipped[name])

@@ -47,17 +47,19 @@ sys.path.insert(0, str(REPO))
 from cwfs_ros import layout  # noqa: E402
 from cwfs_ros.frames.field_position import load_half_chips  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
-from cwfs_ros.ofc.model import ESTIMATOR_RESPONSE_FILENAME, RESPONSE_NOLL_HIGH  # noqa: E402
+from cwfs_ros.ofc.model import (  # noqa: E402
+    ESTIMATOR_RESPONSE_BAND,
+    ESTIMATOR_RESPONSE_FILENAME,
+    RESPONSE_NOLL_HIGH,
+)
 
-BAND = "r"
+BAND = ESTIMATOR_RESPONSE_BAND
 WAVELENGTH_NM = 622.0
 SEEING_ARCSEC = 0.7
 N_RAYS = 2**20  # per donut; a power of 2 keeps the Sobol sequence balanced
 NOMINAL_SEEDS = (1, 2, 3)
 STEP_NM = 50.0  # wavefront of each Zernike step (sag = STEP_NM / 1.94)
 M1_WAVEFRONT_PER_SAG = 1.94  # nm of wavefront per nm of M1 sag near the pupil
-M1_R_OUTER_M = 4.18
-M1_EPS = 0.61
 TRUTH_NX = 128  # batoid.zernike pupil grid
 OUT_NPZ = C.ofc_config_dir() / ESTIMATOR_RESPONSE_FILENAME
 OUT_NOTE = OUT_NPZ.with_suffix(".md")
@@ -65,18 +67,13 @@ NOLL_ALL = tuple(range(layout.NOLL_MIN, RESPONSE_NOLL_HIGH + 1))  # 4..37
 
 
 def m1_zernike_telescope(noll: int, sag_m: float):
-    """The design telescope with ``sag_m`` [m] of annular Noll ``noll`` added to M1's sag."""
-    import batoid
-
+    """The design telescope with ``sag_m`` [m] of annular Noll ``noll`` (eps 0.61, the
+    estimator's) added to M1's sag."""
     from cwfs_ros.sim import perturbed_telescope
+    from cwfs_ros.validation.common import EPS, R_PUPIL_M, with_m1_zernike_sag
 
     tel = perturbed_telescope(np.zeros(layout.N_DOF), BAND)
-    if sag_m == 0.0:
-        return tel
-    coef = np.zeros(noll + 1)
-    coef[noll] = sag_m
-    bump = batoid.Zernike(coef, R_outer=M1_R_OUTER_M, R_inner=M1_EPS * M1_R_OUTER_M)
-    return tel.withSurface("LSST.M1", batoid.Sum([tel["M1"].surface, bump]))
+    return tel if sag_m == 0.0 else with_m1_zernike_sag(tel, noll, sag_m, EPS * R_PUPIL_M)
 
 
 def corner_fields(corner: str) -> tuple[tuple, tuple, tuple]:

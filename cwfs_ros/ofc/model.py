@@ -48,7 +48,8 @@ from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc import rotation
 from cwfs_ros.ofc.field import gq_field_points_deg, gq_weights
 
-__all__ = ["BUNDLED_DZ_FILENAME", "ESTIMATOR_RESPONSE_FILENAME", "MEASUREMENT_MODELS",
+__all__ = ["BUNDLED_DZ_FILENAME", "ESTIMATOR_RESPONSE_BAND", "ESTIMATOR_RESPONSE_FILENAME",
+           "MEASUREMENT_MODELS",
            "RESPONSE_NOLL_HIGH", "EstimatorResponse", "ModelAtAngle", "OpticalModel",
            "double_zernike_at", "estimator_response"]
 

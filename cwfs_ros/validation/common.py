@@ -15,8 +15,8 @@ import numpy as np
 from cwfs_ros.layout import NOLL as _NOLL
 
 __all__ = ["Verdict", "SensorSetup", "PAPER", "SPLIT", "R_PUPIL_M", "EPS", "NOLL",
-           "inject_m1_zernike", "render_deflected", "trace_deflected", "fold_fraction", "rms",
-           "wfe"]
+           "inject_m1_zernike", "with_m1_zernike_sag", "render_deflected", "trace_deflected",
+           "fold_fraction", "rms", "wfe"]
 
 NOLL = np.asarray(_NOLL)  # the published product, Z4..Z22
 R_PUPIL_M = 4.18  # LSST entrance-pupil radius (batoid's pupilSize / 2)
@@ -86,6 +86,18 @@ def _full_zernikes_nm(tel: Any, field_deg: tuple[float, float], wl_nm: float) ->
     return true_zernikes_nm(tel, field_deg, wavelength_nm=wl_nm, eps=EPS)
 
 
+def with_m1_zernike_sag(tel: Any, noll: int, sag_m: float,
+                        r_inner_m: float = M1_INNER_M) -> Any:
+    """``tel`` with ``sag_m`` [m] of the annular Noll ``noll`` (outer radius
+    :data:`R_PUPIL_M`, inner ``r_inner_m``) added to M1's sag."""
+    import batoid
+
+    coef = np.zeros(noll + 1)
+    coef[noll] = sag_m
+    pert = batoid.Zernike(coef, R_outer=R_PUPIL_M, R_inner=r_inner_m)
+    return tel.withSurface("M1", batoid.Sum([tel["M1"].surface, pert]))
+
+
 def inject_m1_zernike(tel: Any, noll: int, target_nm: float, field_deg: tuple[float, float],
                       wavelength_nm: float) -> tuple[Any, np.ndarray]:
     """Add a sag ``batoid.Zernike`` on M1 that makes the wavefront's Z_noll grow by target.
@@ -100,15 +112,10 @@ def inject_m1_zernike(tel: Any, noll: int, target_nm: float, field_deg: tuple[fl
     Returns:
         (perturbed telescope, change of Z4..Z22 in nm at ``field_deg``).
     """
-    import batoid
-
     base = _full_zernikes_nm(tel, field_deg, wavelength_nm)
 
     def with_sag(amp_m: float) -> Any:
-        coef = np.zeros(noll + 1)
-        coef[noll] = amp_m
-        pert = batoid.Zernike(coef, R_outer=R_PUPIL_M, R_inner=M1_INNER_M)
-        return tel.withSurface("M1", batoid.Sum([tel["M1"].surface, pert]))
+        return with_m1_zernike_sag(tel, noll, amp_m)
 
     probe = 1e-7
     resp = (_full_zernikes_nm(with_sag(probe), field_deg, wavelength_nm) - base)[noll - 4]
