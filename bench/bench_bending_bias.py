@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from cwfs_ros.frames.field_position import load_half_chips
+from cwfs_ros import layout
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.model import OpticalModel
 from cwfs_ros.sim.perturbation import stroke_perturbation
-from cwfs_ros.sim.render import RenderSettings, render_donut, true_zernikes_nm
+from cwfs_ros.sim.render import true_zernikes_nm
 from cwfs_ros.sim.telescope import perturbed_telescope
 from cwfs_ros.validation.loop_model import TruthModel, run_model_loop
+from cwfs_ros.validation.readings import ReadingSettings, corner_fields_deg, corner_pair
 from cwfs_ros.wfs import estimate_wavefront
 
 WAVELENGTH_NM = 622.0
@@ -48,16 +49,13 @@ def converged_state(kind: str, truth: TruthModel) -> tuple[np.ndarray, list[floa
 def corner_bias_nm(dof: np.ndarray) -> dict[str, list[float]]:
     """Per fit, the rss over Z4-Z22 of (noise-free estimate - truth) at each corner [nm]."""
     tel = perturbed_telescope(dof, band="r")
-    settings = RenderSettings(wavelength_nm=WAVELENGTH_NM, npix=160, n_photons=1e6,
-                              n_rays=4_000_000, seeing_fwhm_arcsec=SEEING, poisson=False,
-                              sampling="quasi")
+    settings = ReadingSettings(n_rays=4_000_000, seed=1, wavelength_nm=WAVELENGTH_NM,
+                               seeing_arcsec=SEEING)
     out: dict[str, list[float]] = {k: [] for k in FITS}
-    for halves in load_half_chips().values():
-        fi, fe = tuple(halves["intra"].field_deg), tuple(halves["extra"].field_deg)
-        mid = tuple(halves["intra"].mid_deg)
+    for corner in layout.CORNERS:
+        fi, fe, mid = corner_fields_deg(corner)
         truth = true_zernikes_nm(tel, mid, wavelength_nm=WAVELENGTH_NM)
-        imgs = [render_donut(tel, f, dz, settings, rng=np.random.default_rng(1))
-                for f, dz in ((fi, -1.5), (fe, 1.5))]
+        imgs = corner_pair(tel, corner, settings)  # one render, read by each fit
         for name, kw in FITS.items():
             r = estimate_wavefront(*imgs, field_intra_deg=fi, field_extra_deg=fe,
                                    solver="lsq", seeing_fwhm_arcsec=SEEING, **kw)

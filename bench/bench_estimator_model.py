@@ -48,16 +48,16 @@ from pathlib import Path
 import numpy as np
 
 from cwfs_ros import layout
-from cwfs_ros.frames.field_position import load_half_chips
 from cwfs_ros.ofc import control as C
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.model import ModelAtAngle, OpticalModel
 from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.runtime.corner_pool import stamp_uncertainty_nm
 from cwfs_ros.sim.perturbation import stroke_perturbation
-from cwfs_ros.sim.render import RenderSettings, render_donut, true_zernikes_nm
+from cwfs_ros.sim.render import render_donut, true_zernikes_nm
 from cwfs_ros.sim.telescope import perturbed_telescope
 from cwfs_ros.validation.loop_model import TruthModel
+from cwfs_ros.validation.readings import ReadingSettings, corner_fields_deg, corner_reading_nm
 from cwfs_ros.wfs import estimate_wavefront
 
 WAVELENGTH_NM = 622.0
@@ -73,30 +73,18 @@ CLASS_COLUMN = {"rigid": 0, "bending": 1, "mixed": 2}
 
 def corner_fields() -> list[tuple[tuple[float, float], tuple[float, float], tuple[float, float]]]:
     """Per corner (layout order): intra field, extra field, mid-point field [deg]."""
-    out = []
-    for halves in load_half_chips().values():
-        out.append((tuple(halves["intra"].field_deg), tuple(halves["extra"].field_deg),
-                    tuple(halves["intra"].mid_deg)))
-    return out
+    return [corner_fields_deg(c) for c in layout.CORNERS]
 
 
 def estimated_corners_nm(dof: np.ndarray, n_rays: int, seed: int) -> np.ndarray:
-    """(76,) the estimator's Z4-Z22 at the four corners for a noise-free render of ``dof``.
-
-    Every donut uses ``default_rng(seed)``: the same pupil points and seeing offsets for every
-    state, so that differences between states are free of most of the sampling noise.
-    """
+    """(76,) the estimator's Z4-Z22 at the four corners for a noise-free render of ``dof``
+    (:func:`cwfs_ros.validation.readings.corner_reading_nm`: every donut uses
+    ``default_rng(seed)``, so that differences between states are free of most of the
+    sampling noise)."""
     tel = perturbed_telescope(np.asarray(dof, dtype=np.float64), band="r")
-    s = RenderSettings(wavelength_nm=WAVELENGTH_NM, npix=160, n_photons=1e6, n_rays=n_rays,
-                       seeing_fwhm_arcsec=SEEING_ARCSEC, poisson=False, sampling="quasi")
-    out = []
-    for fi, fe, _ in corner_fields():
-        imgs = [render_donut(tel, f, dz, s, rng=np.random.default_rng(seed))
-                for f, dz in ((fi, -1.5), (fe, 1.5))]
-        out.append(estimate_wavefront(*imgs, field_intra_deg=fi, field_extra_deg=fe,
-                                      solver="lsq", seeing_fwhm_arcsec=SEEING_ARCSEC
-                                      ).zernikes_nm)
-    return np.concatenate(out)
+    settings = ReadingSettings(n_rays=n_rays, seed=seed, wavelength_nm=WAVELENGTH_NM,
+                               seeing_arcsec=SEEING_ARCSEC)
+    return np.concatenate([corner_reading_nm(tel, c, settings) for c in layout.CORNERS])
 
 
 def true_corners_nm(dof: np.ndarray, jmax: int) -> np.ndarray:

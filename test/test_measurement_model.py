@@ -18,35 +18,20 @@ from cwfs_ros import layout
 from cwfs_ros.cli.replay import node_parameters
 from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
-from cwfs_ros.frames.field_position import load_half_chips
 from cwfs_ros.ofc import model as M
 from cwfs_ros.ofc.kalman import KalmanOFC
 from cwfs_ros.ofc.params import controller_from_params
-from cwfs_ros.ofc.rotation import telescope_field_deg
 from cwfs_ros.sim.perturbation import stroke_perturbation
-from cwfs_ros.sim.render import RenderSettings, render_donut
 from cwfs_ros.sim.telescope import perturbed_telescope
 from cwfs_ros.validation.loop_model import TruthModel, run_model_loop
-from cwfs_ros.wfs import estimate_wavefront
-
-WAVELENGTH_NM = 622.0
-SEEING_ARCSEC = 0.7
+from cwfs_ros.validation.readings import ReadingSettings, corner_reading_nm
 
 
 def estimator_reading_nm(dof: np.ndarray, corner: str, angle_deg: float) -> np.ndarray:
     """(19,) the shipped estimator's camera-frame Z4-Z22 at ``corner`` for a noise-free
     render of the telescope ``dof`` with the camera turned by ``angle_deg``."""
     tel = perturbed_telescope(dof, band="r", rotator_angle_deg=angle_deg)
-    halves = load_half_chips()[corner]
-    fi, fe = (tuple(halves[s].field_deg) for s in ("intra", "extra"))
-    s = RenderSettings(wavelength_nm=WAVELENGTH_NM, npix=160, n_photons=1e6, n_rays=2**20,
-                       seeing_fwhm_arcsec=SEEING_ARCSEC, poisson=False, sampling="quasi")
-    theta = np.deg2rad(angle_deg)
-    imgs = [render_donut(tel, tuple(telescope_field_deg(f, theta)[0]), dz, s,
-                         rng=np.random.default_rng(7))
-            for f, dz in ((fi, -1.5), (fe, 1.5))]
-    return estimate_wavefront(*imgs, field_intra_deg=fi, field_extra_deg=fe, solver="lsq",
-                              seeing_fwhm_arcsec=SEEING_ARCSEC).zernikes_nm
+    return corner_reading_nm(tel, corner, ReadingSettings(n_rays=2**20, seed=7), angle_deg)
 
 
 def predicted_nm(model: M.OpticalModel, dof: np.ndarray, corner: str,

@@ -45,7 +45,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from cwfs_ros import layout  # noqa: E402
-from cwfs_ros.frames.field_position import load_half_chips  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
 from cwfs_ros.ofc.model import (  # noqa: E402
     ESTIMATOR_RESPONSE_BAND,
@@ -76,31 +75,24 @@ def m1_zernike_telescope(noll: int, sag_m: float):
     return tel if sag_m == 0.0 else with_m1_zernike_sag(tel, noll, sag_m, EPS * R_PUPIL_M)
 
 
-def corner_fields(corner: str) -> tuple[tuple, tuple, tuple]:
-    """(intra field, extra field, mid-point field) of ``corner`` [deg], camera frame."""
-    h = load_half_chips()[corner]
-    return (tuple(h["intra"].field_deg), tuple(h["extra"].field_deg),
-            tuple(h["intra"].mid_deg))
-
-
 def read_and_truth(corner: str, noll: int, sag_m: float, seed: int
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(19,) the estimator's Z4-Z22 and (34,) batoid's Z4-Z37 [nm] at ``corner`` for the
     telescope with ``sag_m`` of Z_noll on M1 (noise-free render, ``default_rng(seed)``)."""
-    from cwfs_ros.sim.render import RenderSettings, render_donut, true_zernikes_nm
-    from cwfs_ros.wfs import estimate_wavefront
+    from cwfs_ros.sim.render import true_zernikes_nm
+    from cwfs_ros.validation.readings import (
+        ReadingSettings,
+        corner_fields_deg,
+        corner_reading_nm,
+    )
 
-    fi, fe, mid = corner_fields(corner)
     tel = m1_zernike_telescope(noll, sag_m)
-    s = RenderSettings(wavelength_nm=WAVELENGTH_NM, npix=160, n_photons=1e6, n_rays=N_RAYS,
-                       seeing_fwhm_arcsec=SEEING_ARCSEC, poisson=False, sampling="quasi")
-    imgs = [render_donut(tel, f, dz, s, rng=np.random.default_rng(seed))
-            for f, dz in ((fi, -1.5), (fe, 1.5))]
-    est = estimate_wavefront(*imgs, field_intra_deg=fi, field_extra_deg=fe, solver="lsq",
-                             seeing_fwhm_arcsec=SEEING_ARCSEC).zernikes_nm
-    truth = true_zernikes_nm(tel, mid, wavelength_nm=WAVELENGTH_NM,
+    settings = ReadingSettings(n_rays=N_RAYS, seed=seed, wavelength_nm=WAVELENGTH_NM,
+                               seeing_arcsec=SEEING_ARCSEC)
+    est = corner_reading_nm(tel, corner, settings)
+    truth = true_zernikes_nm(tel, corner_fields_deg(corner)[2], wavelength_nm=WAVELENGTH_NM,
                              jmax=RESPONSE_NOLL_HIGH, nx=TRUTH_NX)
-    return np.asarray(est), np.asarray(truth)
+    return est, np.asarray(truth)
 
 
 def step_job(corner: str, noll: int) -> tuple[str, int, np.ndarray, np.ndarray]:

@@ -9,9 +9,11 @@ The computations live in small modules, one concern each:
   linearity, atmosphere against algorithm noise).
 * :mod:`.beyond`: the photon-noise floor and the optical-feedback solver's recovery.
 * :mod:`.plots`: the figures (matplotlib on an Agg canvas, no pyplot state).
+* :mod:`.readings`: the estimator's reading of a corner from a noise-free split pair, which
+  the measurement model ``estimator`` is fitted to and checked against.
 
 The entry point (argument parsing, report writing) is :mod:`cwfs_ros.cli.validate`.
 """
 
 # The figures are computed by submodule (the CLI imports them on demand: batoid is heavy).
-__all__ = ["beyond", "common", "loop_model", "paper", "plots"]
+__all__ = ["beyond", "common", "loop_model", "paper", "plots", "readings"]
