@@ -144,6 +144,75 @@ def of(msgs, stamp: int) -> list:
     return [m for m in list(msgs) if stamp_to_ns(m.header.stamp) == stamp]
 
 
+def quiet_ofc_node(ctx, **params):
+    """An ``OfcNode`` on ``ctx`` with no rotator to follow (``rotator_angle_source: fixed``),
+    its /diagnostics every 0.2 s, and ``params`` over the bundled parameters."""
+    from rclpy.parameter import Parameter
+
+    from cwfs_ros.ros.ofc_node import OfcNode
+
+    over = {"rotator_angle_source": "fixed", "diagnostics_period_s": 0.2, **params}
+    return OfcNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                     for k, v in over.items()])
+
+
+def vector_msg(stamp_ns: int, zernikes_nm, uncertainty_nm: float = 10.0):
+    """A ``WavefrontVector`` as a wavefront node publishes a visit of four valid corners,
+    one donut pair each, built field by field (not with the package's converter)."""
+    import numpy as np
+    from cwfs_msgs.msg import WavefrontVector
+
+    m = WavefrontVector()
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    m.zernikes_nm = np.asarray(zernikes_nm, dtype=np.float64)
+    m.corner_valid = [True] * 4
+    m.corners = ["R00", "R04", "R40", "R44"]
+    m.uncertainty_nm = np.full(m.zernikes_nm.size, float(uncertainty_nm))
+    m.n_pairs = [1] * 4
+    return m
+
+
+class VectorProducer:
+    """A node named ``name`` on its own context on ``domain``: it publishes vectors on
+    ``aos/wfs/wavefront`` and records the corrections by stamp, spinning in a thread."""
+
+    def __init__(self, domain: int, name: str = "wavefront_node") -> None:
+        import rclpy
+        from cwfs_msgs.msg import DofCorrection, WavefrontVector
+
+        from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns
+        from cwfs_ros.ros.executor import MultiThreadedExecutor
+
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.ex = MultiThreadedExecutor(num_threads=2, context=self.ctx)
+        self.node = rclpy.create_node(name, context=self.ctx)
+        self.ex.add_node(self.node)
+        self.pub = self.node.create_publisher(WavefrontVector, "aos/wfs/wavefront",
+                                              OUTPUT_QOS)
+        self.got: dict[int, list] = {}
+        self.node.create_subscription(
+            DofCorrection, "aos/ofc/dof_correction",
+            lambda m: self.got.setdefault(stamp_to_ns(m.header.stamp), []).append(m),
+            OUTPUT_QOS)
+        self._th = spin_thread(self.ex)
+        self._th.start()
+
+    def send(self, stamp_ns: int, zernikes_nm, timeout_s: float = 30.0):
+        """Publish the visit and return the correction of ``stamp_ns`` it brings."""
+        seen = len(self.got.get(stamp_ns, []))
+        self.pub.publish(vector_msg(stamp_ns, zernikes_nm))
+        wait_for(lambda: len(self.got.get(stamp_ns, [])) > seen, timeout_s,
+                 f"the correction of the visit stamped {stamp_ns}")
+        return self.got[stamp_ns][-1]
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+        self._th.join(5)
+
+
 @pytest.fixture
 def r00_graph(ros_context):
     """A wavefront node serving R00 (the bundled parameters but one worker, a 1-s visit

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import spin_thread, wait_for
+from conftest import quiet_ofc_node, wait_for
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
@@ -27,8 +27,6 @@ from cwfs_ros import cli  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
 from cwfs_ros.ros import launch as L  # noqa: E402
 from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 
 SEC = 1_000_000_000
 T0 = 5000 * SEC
@@ -53,17 +51,13 @@ def _vector(stamp: int, z: np.ndarray) -> WavefrontVector:
 
 
 @pytest.fixture
-def loop(ros_domain, monkeypatch):
+def loop(ros_domain, ros_context, spin, monkeypatch):
     """A started ofc_node (no rotator) and a tester publishing vectors and recording the
     corrections and ofc_node's /diagnostics, spinning on the test's domain."""
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    ofc = OfcNode(context=ctx, parameter_overrides=[
-        Parameter("rotator_angle_source", value="fixed"),
-        Parameter("diagnostics_period_s", value=0.2)])
-    tester = rclpy.create_node("tester", context=ctx)
+    ofc = spin(quiet_ofc_node(ros_context))
+    tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
     out: list[DofCorrection] = []
     diag: list[dict[str, str]] = []
@@ -72,20 +66,9 @@ def loop(ros_domain, monkeypatch):
         DiagnosticArray, "/diagnostics",
         lambda a: diag.extend({"message": s.message, **{v.key: v.value for v in s.values}}
                               for s in a.status if s.name.startswith("ofc_node")), 10)
-    ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-    ex.add_node(ofc)
-    ex.add_node(tester)
-    th = spin_thread(ex)
-    th.start()
-    try:
-        wait_for(lambda: pub.get_subscription_count() > 0 and
-                 ofc.pub.get_subscription_count() > 0, 10, "discovery")
-        yield ofc, pub, out, diag
-    finally:
-        ctx.try_shutdown()
-        th.join(5)
-        ex.shutdown(timeout_sec=1.0)
-        ofc.destroy_node()
+    wait_for(lambda: pub.get_subscription_count() > 0 and
+             ofc.pub.get_subscription_count() > 0, 10, "discovery")
+    return ofc, pub, out, diag
 
 
 def test_a_deactivated_ofc_node_publishes_no_correction_until_activated(loop, capsys):

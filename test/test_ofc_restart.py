@@ -20,18 +20,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import kill_group, spin_thread, wait_for
+from conftest import VectorProducer, kill_group, vector_msg, wait_for
 
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 
-from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
+from cwfs_msgs.msg import DofCorrection  # noqa: E402
 
 from cwfs_ros import layout  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
-from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SEC = 1_000_000_000
@@ -58,42 +56,22 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
     intrinsic = C.intrinsic_vector_nm("r", truth.field_points_deg)
     telescope = np.zeros(layout.N_DOF)
     telescope[[1, 2, 6, 8]] = [500.0, -300.0, 400.0, 0.004]  # decentres and a camera tilt
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-    tester = rclpy.create_node("telescope", context=ctx)
-    ex.add_node(tester)
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    got: dict[int, list[DofCorrection]] = {}
-    tester.create_subscription(
-        DofCorrection, "aos/ofc/dof_correction",
-        lambda m: got.setdefault(stamp_to_ns(m.header.stamp), []).append(m), OUTPUT_QOS)
-    th = spin_thread(ex)
-    th.start()
+    producer = VectorProducer(ros_domain, "telescope")
     # visits 40 s apart (the LSST cadence), all in the past of the node's clock
     t0 = (time.time_ns() // SEC) * SEC - 400 * SEC
     errors: list[float] = []
     noise = np.random.default_rng(12)
 
     def visit(k: int) -> DofCorrection:
-        stamp = t0 + k * 40 * SEC
-        m = WavefrontVector()
-        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
         wf = truth.matrix_nm @ telescope
         errors.append(float(np.linalg.norm(wf)))
-        m.zernikes_nm = intrinsic + wf + noise.normal(0.0, 1.0, layout.N_MEAS)  # photon noise
-        m.corner_valid = [True] * 4
-        m.corners = ["R00", "R04", "R40", "R44"]
-        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
-        m.n_pairs = [1] * 4
-        seen = len(got.get(stamp, []))
-        pub.publish(m)
-        wait_for(lambda: len(got.get(stamp, [])) > seen, 30, f"the correction of visit {k}")
-        return got[stamp][-1]
+        # photon noise
+        return producer.send(t0 + k * 40 * SEC,
+                             intrinsic + wf + noise.normal(0.0, 1.0, layout.N_MEAS))
 
     proc = _start_ofc(ros_domain, state_file)
     try:
-        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to start")
+        wait_for(lambda: producer.pub.get_subscription_count() > 0, 60, "ofc_node to start")
         for k in range(1, 6):
             d = visit(k)
             assert d.valid, d.status
@@ -102,9 +80,10 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         saved = json.loads(state_file.read_text())
         assert saved["last_stamp_ns"] == t0 + 5 * 40 * SEC and saved["n_steps"] == 5
         kill_group(proc)
-        wait_for(lambda: pub.get_subscription_count() == 0, 30, "the old node to vanish")
+        wait_for(lambda: producer.pub.get_subscription_count() == 0, 30,
+                 "the old node to vanish")
         proc = _start_ofc(ros_domain, state_file)
-        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to restart")
+        wait_for(lambda: producer.pub.get_subscription_count() > 0, 60, "ofc_node to restart")
         again = visit(5)
         assert not again.valid and again.status.startswith("stale_visit"), again.status
         assert not np.any(again.dof)
@@ -120,10 +99,7 @@ def test_ofc_node_killed_at_visit_5_continues_from_its_state(ros_domain, tmp_pat
         assert 0 < d6.dof_uncertainty[1] < 0.1 * 0.2 * 6700
     finally:
         kill_group(proc)
-        ex.shutdown()
-        tester.destroy_node()
-        rclpy.shutdown(context=ctx)
-        th.join(5)
+        producer.close()
 
 
 def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tmp_path):
@@ -142,18 +118,12 @@ def test_a_state_that_cannot_be_written_withholds_the_correction(ros_context, tm
     try:
         sent: list[DofCorrection] = []
         ofc.pub.publish = sent.append  # what the node publishes, without a subscriber
-        m = WavefrontVector()
-        stamp = (time.time_ns() // SEC - 100) * SEC
-        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
         x = np.zeros(layout.N_DOF)
         x[1] = 300.0
         sm = C.sensitivity_for_source("bundled")
-        m.zernikes_nm = C.intrinsic_vector_nm("r", sm.field_points_deg) + sm.matrix_nm @ x
-        m.corner_valid = [True] * 4
-        m.corners = ["R00", "R04", "R40", "R44"]
-        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
-        m.n_pairs = [1] * 4
-        ofc._on_vector(m)
+        ofc._on_vector(vector_msg((time.time_ns() // SEC - 100) * SEC,
+                                  C.intrinsic_vector_nm("r", sm.field_points_deg)
+                                  + sm.matrix_nm @ x))
         assert len(sent) == 1 and not sent[0].valid, sent
         assert sent[0].status.startswith("state_not_saved"), sent[0].status
         assert ofc.solver.n_steps == 0 and not np.any(ofc.solver.dof_total)
@@ -175,46 +145,25 @@ def test_the_shipped_default_keeps_the_state_across_a_restart(ros_domain, tmp_pa
     default_file = tmp_path / "ros_home" / "cwfs_ros" / "ofc_node.state.json"
     sm = C.sensitivity_for_source("bundled")
     intrinsic = C.intrinsic_vector_nm("r", sm.field_points_deg)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-    tester = rclpy.create_node("wavefront_node", context=ctx)
-    ex.add_node(tester)
-    pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    reset = tester.create_client(Trigger, "ofc_node/reset")
-    got: dict[int, list[DofCorrection]] = {}
-    tester.create_subscription(
-        DofCorrection, "aos/ofc/dof_correction",
-        lambda m: got.setdefault(stamp_to_ns(m.header.stamp), []).append(m), OUTPUT_QOS)
-    th = spin_thread(ex)
-    th.start()
+    producer = VectorProducer(ros_domain)
+    reset = producer.node.create_client(Trigger, "ofc_node/reset")
     t0 = (time.time_ns() // SEC) * SEC - 400 * SEC
 
     def visit(k: int) -> DofCorrection:
-        stamp = t0 + k * 40 * SEC
         x = np.zeros(layout.N_DOF)
         x[1] = 300.0 / k
-        m = WavefrontVector()
-        m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, SEC)
-        m.zernikes_nm = intrinsic + sm.matrix_nm @ x
-        m.corner_valid = [True] * 4
-        m.corners = ["R00", "R04", "R40", "R44"]
-        m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
-        m.n_pairs = [1] * 4
-        seen = len(got.get(stamp, []))
-        pub.publish(m)
-        wait_for(lambda: len(got.get(stamp, [])) > seen, 30, f"the correction of visit {k}")
-        return got[stamp][-1]
+        return producer.send(t0 + k * 40 * SEC, intrinsic + sm.matrix_nm @ x)
 
     proc = _start_ofc(ros_domain, None)
     try:
-        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to start")
+        wait_for(lambda: producer.pub.get_subscription_count() > 0, 60, "ofc_node to start")
         assert visit(1).valid and visit(2).valid
         assert json.loads(default_file.read_text())["n_steps"] == 2
         kill_group(proc)
-        wait_for(lambda: pub.get_subscription_count() == 0, 30, "the old node to vanish")
+        wait_for(lambda: producer.pub.get_subscription_count() == 0, 30,
+                 "the old node to vanish")
         proc = _start_ofc(ros_domain, None)
-        wait_for(lambda: pub.get_subscription_count() > 0, 60, "ofc_node to restart")
+        wait_for(lambda: producer.pub.get_subscription_count() > 0, 60, "ofc_node to restart")
         again = visit(2)
         assert not again.valid and again.status.startswith("stale_visit"), again.status
         assert visit(3).valid
@@ -226,7 +175,4 @@ def test_the_shipped_default_keeps_the_state_across_a_restart(ros_domain, tmp_pa
         assert saved["n_steps"] == 0 and saved["last_stamp_ns"] is None, saved
     finally:
         kill_group(proc)
-        ex.shutdown()
-        tester.destroy_node()
-        rclpy.shutdown(context=ctx)
-        th.join(5)
+        producer.close()

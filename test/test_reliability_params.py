@@ -15,16 +15,13 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO_ROOT, spin_thread, wait_for
+from conftest import REPO_ROOT, quiet_ofc_node, wait_for
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 from cwfs_ros.ros.wavefront_node import WavefrontNode  # noqa: E402
 
 # What an outside process tried to switch the guards off with (docs/reliability.md).
@@ -85,31 +82,15 @@ def _param_set_many(domain: int, node: str, pairs: list[tuple[str, str]]
 
 
 @pytest.fixture
-def nodes(ros_domain):
+def nodes(ros_context, spin):
     """ofc_node (active, no rotator) and an unconfigured wavefront_node (its parameters and
     services, no workers), with an observer of /diagnostics."""
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    ofc = OfcNode(context=ctx, parameter_overrides=[
-        Parameter("rotator_angle_source", value="fixed"),
-        Parameter("diagnostics_period_s", value=0.2)])
-    wf = WavefrontNode(context=ctx, autostart=False)
-    obs = rclpy.create_node("observer", context=ctx)
+    ofc = spin(quiet_ofc_node(ros_context))
+    wf = spin(WavefrontNode(context=ros_context, autostart=False))
+    obs = spin(rclpy.create_node("observer", context=ros_context))
     diag: list[DiagnosticArray] = []
     obs.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 50)
-    ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-    for n in (ofc, wf, obs):
-        ex.add_node(n)
-    th = spin_thread(ex)
-    th.start()
-    try:
-        yield ofc, wf, diag
-    finally:
-        ex.shutdown(timeout_sec=2.0)
-        for n in (ofc, wf, obs):
-            n.destroy_node()
-        ctx.try_shutdown()
-        th.join(5)
+    return ofc, wf, diag
 
 
 def _ofc_status(diag: list[DiagnosticArray], *words: str) -> DiagnosticStatus | None:

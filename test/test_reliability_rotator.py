@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import spin_thread, wait_for
+from conftest import spin_thread, vector_msg, wait_for
 
 from cwfs_ros.ofc.rotator import RotatorHistory
 
@@ -100,21 +100,13 @@ def _joint(stamp_ns: int, angle_deg: float):
 
 def _vector(ofc, stamp_ns: int, angle_deg: float, dx_um: float = 300.0):
     """The vector of a telescope with an M2 decentre, seen by a camera at ``angle_deg``."""
-    from cwfs_msgs.msg import WavefrontVector
 
     from cwfs_ros import layout
 
     at = ofc.solver.model.at(angle_deg)
     x = np.zeros(layout.N_DOF)
     x[1] = dx_um
-    m = WavefrontVector()
-    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp_ns, SEC)
-    m.zernikes_nm = at.intrinsic_nm + at.H @ x
-    m.corner_valid = [True] * 4
-    m.corners = list(layout.CORNERS)
-    m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
-    m.n_pairs = [1] * 4
-    return m
+    return vector_msg(stamp_ns, at.intrinsic_nm + at.H @ x)
 
 
 def test_a_spoofed_rotator_sample_does_not_change_the_visits_angle(ofc_loop):

@@ -12,20 +12,17 @@ import time
 
 import numpy as np
 import pytest
-from conftest import spin_thread, wait_for
+from conftest import quiet_ofc_node, vector_msg, wait_for
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 
 from cwfs_ros import layout  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
 from cwfs_ros.ros.common import OUTPUT_QOS, stamp_to_ns  # noqa: E402
-from cwfs_ros.ros.executor import MultiThreadedExecutor  # noqa: E402
-from cwfs_ros.ros.ofc_node import OfcNode  # noqa: E402
 
 SEC = 1_000_000_000
 
@@ -35,14 +32,8 @@ def good_vector(stamp_ns: int, dx_um: float = 300.0) -> WavefrontVector:
     sm = C.sensitivity_for_source("bundled")
     x = np.zeros(layout.N_DOF)
     x[1] = dx_um
-    m = WavefrontVector()
-    m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp_ns, SEC)
-    m.zernikes_nm = C.intrinsic_vector_nm("r", sm.field_points_deg) + sm.matrix_nm @ x
-    m.corner_valid = [True] * 4
-    m.corners = list(layout.CORNERS)
-    m.uncertainty_nm = np.full(layout.N_MEAS, 10.0)
-    m.n_pairs = [1] * 4
-    return m
+    return vector_msg(stamp_ns, C.intrinsic_vector_nm("r", sm.field_points_deg)
+                      + sm.matrix_nm @ x)
 
 
 class Impostor:
@@ -69,37 +60,21 @@ def _values(st: DiagnosticStatus) -> dict[str, str]:
 
 
 @pytest.fixture
-def ofc_graph(ros_domain):
+def ofc_graph(ros_context, spin):
     """ofc_node (no rotator), the one legitimate vector producer (named wavefront_node) and an
     observer of the corrections and /diagnostics, on one context spinning in a thread."""
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    ofc = OfcNode(context=ctx, parameter_overrides=[
-        Parameter("rotator_angle_source", value="fixed"),
-        Parameter("diagnostics_period_s", value=0.2)])
-    owner = rclpy.create_node("wavefront_node", context=ctx)
+    ofc = spin(quiet_ofc_node(ros_context))
+    owner = spin(rclpy.create_node("wavefront_node", context=ros_context))
     pub = owner.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
-    obs = rclpy.create_node("observer", context=ctx)
+    obs = spin(rclpy.create_node("observer", context=ros_context))
     got: dict[int, list[DofCorrection]] = {}
     obs.create_subscription(
         DofCorrection, "aos/ofc/dof_correction",
         lambda m: got.setdefault(stamp_to_ns(m.header.stamp), []).append(m), OUTPUT_QOS)
     diag: list[DiagnosticArray] = []
     obs.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 50)
-    ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-    for n in (ofc, owner, obs):
-        ex.add_node(n)
-    th = spin_thread(ex)
-    th.start()
     wait_for(lambda: pub.get_subscription_count() > 0, 20, "ofc_node to hear its producer")
-    try:
-        yield ofc, pub, got, diag
-    finally:
-        ex.shutdown(timeout_sec=2.0)
-        for n in (ofc, owner, obs):
-            n.destroy_node()
-        ctx.try_shutdown()
-        th.join(5)
+    return ofc, pub, got, diag
 
 
 def test_a_vector_is_integrated_only_while_its_topic_has_its_one_publisher(ofc_graph,

@@ -49,6 +49,7 @@ __all__ = [
     "OUTPUT_QOS",
     "GUARD_PARAMETERS",
     "ParameterAudit",
+    "endpoint_label",
     "PublisherTrust",
     "QosEventMonitor",
     "image_qos",
@@ -372,8 +373,10 @@ def string_param_problem(name: str, value: object,
     return None
 
 
-def _endpoint(info: Any) -> str:
-    """``/ns/node (gid 0f1e...)`` of a TopicEndpointInfo."""
+def endpoint_label(info: Any) -> str:
+    """``/ns/node (gid 0f1e...)`` of a TopicEndpointInfo: the whole gid (its trailing zero
+    padding cut), because a node name proves nothing and the last bytes alone are the
+    endpoint's entity id, which the first publisher of every process shares."""
     ns = str(info.node_namespace).rstrip("/")
     gid = bytes(info.endpoint_gid).hex().rstrip("0")[:32] or "0"
     return f"{ns}/{info.node_name} (gid {gid})"
@@ -401,11 +404,11 @@ def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
             continue
         named_me = [i for i in infos
                     if (str(i.node_namespace).rstrip("/"), str(i.node_name)) == me]
-        out += [f"{name}: {_endpoint(i)}" for i in infos if i not in named_me]
+        out += [f"{name}: {endpoint_label(i)}" for i in infos if i not in named_me]
         if len(named_me) > own:
             out.append(f"{name}: {len(named_me)} endpoints named {me[0]}/{me[1]} for this "
                        f"node's {own} (another process under its name: "
-                       f"{', '.join(_endpoint(i) for i in named_me)})")
+                       f"{', '.join(endpoint_label(i) for i in named_me)})")
     return sorted(out)
 
 
@@ -578,7 +581,7 @@ class PublisherTrust:
             infos = self._node.get_publishers_info_by_topic(self.topic)
         except Exception:  # noqa: BLE001
             return "unknown"
-        return ", ".join(_endpoint(i) for i in infos) or "none"
+        return ", ".join(endpoint_label(i) for i in infos) or "none"
 
 
 class SequenceGaps:

@@ -70,6 +70,7 @@ from cwfs_ros.ros.common import (
     bundled_declarer,
     describe,
     diagnostic_status,
+    endpoint_label,
     foreign_publishers,
     image_qos,
     result,
@@ -577,7 +578,7 @@ class WavefrontNode(ManagedNode):
 
     def _refresh_image_publishers(self) -> dict[tuple[str, str], list[str]]:
         """The publishers of each served image topic, from the ROS graph (~0.1 ms a topic):
-        ``namespace/node`` names, with the endpoint gid's last 4 bytes when two share a name."""
+        ``namespace/node (gid ...)`` labels (:func:`.common.endpoint_label`)."""
         out: dict[tuple[str, str], list[str]] = {}
         for c, s in list(self._image_subs):
             try:
@@ -585,10 +586,7 @@ class WavefrontNode(ManagedNode):
                     self.resolve_topic_name(image_topic(c, s)))
             except Exception:  # noqa: BLE001 - a graph query must not break an image
                 continue
-            names = [f"{str(i.node_namespace).rstrip('/')}/{i.node_name}" for i in infos]
-            out[(c, s)] = [n if names.count(n) == 1 else
-                           f"{n} (gid {bytes(i.endpoint_gid).hex()[-8:]})"
-                           for n, i in zip(names, infos, strict=True)]
+            out[(c, s)] = [endpoint_label(i) for i in infos]
         with self._lock:
             self.image_publishers = out
         return out
