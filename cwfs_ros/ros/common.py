@@ -376,7 +376,8 @@ def string_param_problem(name: str, value: object,
 def endpoint_label(info: Any) -> str:
     """``/ns/node (gid 0f1e...)`` of a TopicEndpointInfo: the whole gid (its trailing zero
     padding cut), because a node name proves nothing and the last bytes alone are the
-    endpoint's entity id, which the first publisher of every process shares."""
+    endpoint's entity id, which two processes that create their endpoints in the same order
+    share."""
     ns = str(info.node_namespace).rstrip("/")
     gid = bytes(info.endpoint_gid).hex().rstrip("0")[:32] or "0"
     return f"{ns}/{info.node_name} (gid {gid})"
