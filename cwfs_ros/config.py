@@ -24,11 +24,30 @@ import yaml
 from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import SIDES
 
-__all__ = ["SENSOR_FILE", "CornerGeometry", "config_dir", "load_sensor_geometry", "load_yaml",
-           "sensor_file"]
+__all__ = ["AUTO_TILE_STORE", "SENSOR_FILE", "CornerGeometry", "config_dir",
+           "load_sensor_geometry", "load_yaml", "ros_home", "sensor_file", "tile_store_dir"]
 
 # The corner-sensor file, relative to config_dir().
 SENSOR_FILE = Path("sensors") / "lsst_corners.yaml"
+
+
+def ros_home() -> Path:
+    """``$ROS_HOME``, else ``~/.ros``: where ROS 2 keeps a node's files (logs, state)."""
+    home = os.environ.get("ROS_HOME", "")
+    return Path(home).expanduser() if home else Path.home() / ".ros"
+
+
+#: ``tile_store`` value that means :func:`tile_store_dir`'s default directory.
+AUTO_TILE_STORE = "auto"
+
+
+def tile_store_dir(value: str) -> str:
+    """The directory a ``tile_store`` parameter names: ``auto`` is
+    ``$ROS_HOME/cwfs_ros/tiles``, ``""`` none (no store), anything else that path (``~``
+    expanded). Field tiles are kept there across processes (:mod:`cwfs_ros.wfs.tile_store`)."""
+    if value == AUTO_TILE_STORE:
+        return str(ros_home() / "cwfs_ros" / "tiles")
+    return str(Path(value).expanduser()) if value else ""
 
 
 def config_dir() -> Path:

@@ -522,8 +522,8 @@ def _run_bag(bag: Any, topics: _BagTopics, pipe: _Pipeline, n_images: int,
     from threadpoolctl import threadpool_limits
     from tqdm import tqdm
 
-    from cwfs_ros.runtime.visits import stamp_to_ns
     from cwfs_ros.wfs.estimator import reset_caches
+    from cwfs_ros.wfs.mapping import use_field_tile_store
 
     live_corners: dict[tuple, Any] = {}
     live_dofs: dict[int, Any] = {}
@@ -538,20 +538,32 @@ def _run_bag(bag: Any, topics: _BagTopics, pipe: _Pipeline, n_images: int,
         # tile's third field on, so what this process estimated before could move the
         # estimates by ~0.1 nm from the live ones (mapping.reset_field_tiles).
         reset_caches()
-        pipe.warm_up()
-        for m, msg in bag.decoded(topics.read):
-            if m.topic in topics.images:
-                pipe.image(msg, *topics.images[m.topic], m.timestamp_ns / 1e9, m.timestamp_ns)
-                bar.update(1)
-            elif m.topic in topics.joints:
-                pipe.joints(msg)
-            elif m.topic in topics.live:
-                live_corners[(str(msg.corner) or topics.live[m.topic],
-                              stamp_to_ns(msg.header.stamp))] = msg
-            else:
-                live_dofs[stamp_to_ns(msg.header.stamp)] = msg
-        pipe.expire(float("inf"))  # the end of the bag: every timeout has passed
+        try:
+            _replay_messages(pipe, bag, topics, bar, live_corners, live_dofs)
+        finally:
+            use_field_tile_store(None)  # turned on by a frames warm-up: this run's only
     return live_corners, live_dofs
+
+
+def _replay_messages(pipe: _Pipeline, bag: Any, topics: Any, bar: Any,
+                     live_corners: dict[tuple, Any], live_dofs: dict[int, Any]) -> None:
+    """Warm the pipeline up, then feed it the bag's messages in order, keeping the live
+    outputs the bag holds."""
+    from cwfs_ros.runtime.visits import stamp_to_ns
+
+    pipe.warm_up()
+    for m, msg in bag.decoded(topics.read):
+        if m.topic in topics.images:
+            pipe.image(msg, *topics.images[m.topic], m.timestamp_ns / 1e9, m.timestamp_ns)
+            bar.update(1)
+        elif m.topic in topics.joints:
+            pipe.joints(msg)
+        elif m.topic in topics.live:
+            live_corners[(str(msg.corner) or topics.live[m.topic],
+                          stamp_to_ns(msg.header.stamp))] = msg
+        else:
+            live_dofs[stamp_to_ns(msg.header.stamp)] = msg
+    pipe.expire(float("inf"))  # the end of the bag: every timeout has passed
 
 
 def _write_outputs(out: Path, pipe: _Pipeline, plots: bool) -> dict[str, Path]:

@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from cwfs_ros.config import config_dir
+from cwfs_ros.config import config_dir, ros_home
 from cwfs_ros.errors import ParamsFileError
 
 __all__ = ["AUTO_STATE_FILE", "check_declared", "check_overrides", "close_match",
@@ -31,14 +31,6 @@ AUTO_STATE_FILE = "auto"
 def default_params_file() -> Path:
     """The parameters every node starts from: ``config/params.yaml``."""
     return config_dir() / "params.yaml"
-
-
-def ros_home() -> Path:
-    """``$ROS_HOME``, else ``~/.ros``: where ROS 2 keeps a node's files (logs, state)."""
-    import os
-
-    home = os.environ.get("ROS_HOME", "")
-    return Path(home).expanduser() if home else Path.home() / ".ros"
 
 
 def state_file_path(value: str, namespace: str, node_name: str) -> str:

@@ -353,6 +353,12 @@ class WavefrontNode(ManagedNode):
         d("selection_config", describe(
             "Donut selection YAML for frames; empty = config/selection.yaml.",
             read_only=True))
+        d("tile_store", describe(
+            "Directory where the workers keep the half-chips' field tiles across starts, so "
+            "that a restart (or a replay) with input_mode frames reads them instead of "
+            "tracing them again: auto = $ROS_HOME/cwfs_ros/tiles, empty = none. A tile is "
+            "read only when it was built by the same code and library versions.",
+            read_only=True))
         d("image_reliability", describe(
             "QoS reliability of the image subscriptions: reliable (a lost image loses the "
             "corner's visit) or best_effort (needed to hear a camera that publishes with "
@@ -483,13 +489,15 @@ class WavefrontNode(ManagedNode):
             self._warm[corner] = info
             done = len(self._warm) == len(self.corners)
             tiles = sum(int(w.get("tiles", 0)) for w in self._warm.values())
+            loaded = sum(int(w.get("tiles_loaded", 0)) for w in self._warm.values())
             self.workload.record_warm(int(info.get("pid", 0)), info.get("caches"))
         if not info.get("ok"):
             self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
         if done:
             self.get_logger().info(
                 f"workers warm after {time.monotonic() - t0:.2f} s"
-                + (f" ({tiles} field tiles of the half-chips built)" if tiles else ""))
+                + (f" ({tiles} field tiles of the half-chips made, {loaded} of them read "
+                   f"from the tile store)" if tiles else ""))
 
     @property
     def ready(self) -> bool:
@@ -862,7 +870,8 @@ class WavefrontNode(ManagedNode):
             values += [(f"cost_p90_s.{c}", f"{v:.2f}") for c, v in sorted(costs.items())]
             values += self.workload.cache_values()
             values += [(f"warm_tiles.{c}", f"{int(w.get('tiles', 0))} in "
-                        f"{float(w.get('tiles_s', 0.0)):.1f} s") for c, w in
+                        f"{float(w.get('tiles_s', 0.0)):.1f} s "
+                        f"({int(w.get('tiles_loaded', 0))} from the tile store)") for c, w in
                        sorted(self._warm.items()) if w.get("tiles")]
         return values
 

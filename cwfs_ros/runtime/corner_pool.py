@@ -257,10 +257,12 @@ def synthetic_donut(stamp_px: int, radius_px: float, obscuration: float) -> np.n
 @dataclass(frozen=True)
 class FrameFiles:
     """The files a frames job reads: wavefront_node's ``sensor_config`` and
-    ``selection_config`` ("" = the bundled ones)."""
+    ``selection_config`` ("" = the bundled ones); and the directory of the field-tile store
+    the warm-up turns on for the worker's life (``tile_store``, resolved; "" = none)."""
 
     sensor_config: str = ""
     selection_config: str = ""
+    tile_store: str = ""  # the directory of the field-tile store ("" = none)
 
 
 def warm_corner(corner: str, field_intra_deg: tuple[float, float],
@@ -295,9 +297,10 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
         except CwfsError:
             pass  # the synthetic pair may be rejected; the caches are built regardless
         t2 = time.perf_counter()
-        tiles = _warm_frames(corner, inst, settings, algo, frames) if frames else 0
+        tiles, loaded = _warm_frames(corner, inst, settings, algo, frames) if frames else (0, 0)
         return {"corner": corner, "ok": True, "pid": os.getpid(),
-                "geometry_s": t1 - t0, "tiles": tiles, "tiles_s": time.perf_counter() - t2,
+                "geometry_s": t1 - t0, "tiles": tiles, "tiles_loaded": loaded,
+                "tiles_s": time.perf_counter() - t2,
                 "total_s": time.perf_counter() - t0, "error": "",
                 "caches": worker_cache_counts()}
     except Exception as exc:  # noqa: BLE001
@@ -307,18 +310,23 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
 
 
 def _warm_frames(corner: str, inst: Any, settings: EstimatorSettings, algo: Any,
-                 files: FrameFiles) -> int:
-    """Build the field tiles of every star field of the corner's half-chips (and read the
-    selection file); the number of tiles built (~1.2 s per map tile, 9 per LSST corner)."""
+                 files: FrameFiles) -> tuple[int, int]:
+    """Make the field tiles of every star field of the corner's half-chips (and read the
+    selection file): (tiles made, of which read from the tile store). A tile is traced in
+    ~1.2 s (map tiles; 9 per LSST corner), or read from the store in milliseconds."""
     from cwfs_ros.frames.field_position import corner_star_fields, load_half_chips
     from cwfs_ros.frames.selection import load_selection_config
     from cwfs_ros.wfs.estimator import warm_star_fields
+    from cwfs_ros.wfs.mapping import field_tile_stats, use_field_tile_store
 
+    use_field_tile_store(files.tile_store or None)  # for this worker's life
     load_selection_config(files.selection_config or None, solver=settings.solver)
     halves = load_half_chips(files.sensor_config or None)[corner]
     side_fields, mids = corner_star_fields(halves, inst, settings.band)
-    return warm_star_fields(inst, settings.band, inst.wavelength_nm(settings.band, None),
+    loaded = sum(t.loaded for t in field_tile_stats().values())
+    made = warm_star_fields(inst, settings.band, inst.wavelength_nm(settings.band, None),
                             algo, side_fields, mids)
+    return made, sum(t.loaded for t in field_tile_stats().values()) - loaded
 
 
 def _worker_init(owner_pid: int = 0) -> None:

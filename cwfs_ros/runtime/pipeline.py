@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from cwfs_ros.config import tile_store_dir
 from cwfs_ros.errors import ConfigError, Problem
 from cwfs_ros.layout import CORNERS, SIDES
 from cwfs_ros.runtime.corner_pool import (
@@ -201,7 +202,8 @@ class WavefrontPipeline:
         if not self.warms_frames:
             return None
         return FrameFiles(str(self._get("sensor_config") or ""),
-                          str(self._get("selection_config") or ""))
+                          str(self._get("selection_config") or ""),
+                          tile_store_dir(str(self._get("tile_store"))))
 
     @property
     def warms_frames(self) -> bool:

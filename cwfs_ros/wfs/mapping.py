@@ -54,12 +54,13 @@ from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import SIDES
 from cwfs_ros.wfs.instrument import Instrument
+from cwfs_ros.wfs.tile_store import TileStore, active_tile_store, use_tile_store
 from cwfs_ros.wfs.zernike import zernike_basis
 
 __all__ = ["ImageMapping", "nominal_mapping", "design_zernikes_nm", "design_zernikes_tiled",
            "Poly10Tables", "poly10_tables", "defocused_telescope", "TileCacheStats",
            "field_tile_stats", "size_field_tile_caches", "warm_field_tiles", "tile_of",
-           "tile_centre"]
+           "tile_centre", "use_field_tile_store", "reset_field_tiles"]
 
 
 # Radial order of the polynomial fitted to ray hits.  The paper uses 10th order (§3.3); with
@@ -425,8 +426,9 @@ map_tile_builds = 0
 def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray,
               band: str, wavelength_nm: float, tile: tuple[int, int], tile_deg: float,
               op: _FitOperator, annulus: np.ndarray) -> tuple | None:
-    """(coefficient shares, always-transmitted, swept points, their aperture edges, node
-    rms) or None."""
+    """The tile's fit from ray traces: (field polynomial of the mapping coefficients,
+    always-transmitted, swept points, their aperture edges, node rms) or None
+    (:func:`_map_tile_entry` turns it into what a field reads)."""
     global map_tile_builds
     map_tile_builds += 1
     u, v, nodes = _tile_nodes(tile, tile_deg, _MAP_TILE_NODES)
@@ -453,6 +455,15 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     sweep = np.flatnonzero(~always & ~never)
     edges = _aperture_edges(inst, side, defocus_mm, x[sweep], y[sweep], band, wavelength_nm,
                             nodes, mono, masks[:, sweep]) if sweep.size else None
+    return poly, always, sweep, edges, max(rms)
+
+
+def _map_tile_entry(fit: tuple | None, op: _FitOperator) -> tuple | None:
+    """(coefficient shares, always-transmitted, swept points, their aperture edges, node
+    rms) of a tile's fit (:func:`_map_tile`), or None."""
+    if fit is None:
+        return None
+    poly, always, sweep, edges, rms = fit
     # The mapping at a field is linear in the tile's monomials, so each monomial's share of
     # the six mapped quantities at every point is precomputed: a new field then reads
     # (n_mono, 6, n) values (~6 MB) instead of the three (jfit, n) float64 bases (~40 MB),
@@ -466,7 +477,7 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
     centre, variation = shares[0], shares[1:].astype(np.float32)
     for a in (centre, variation, always, sweep):
         a.setflags(write=False)
-    return (centre, variation), always, sweep, edges, max(rms)
+    return (centre, variation), always, sweep, edges, rms
 
 
 # -- the field-tile caches: sizes, warming and counters --------------------------------------
@@ -477,8 +488,9 @@ def _map_tile(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: 
 # are sized from the sensor geometry by :func:`size_field_tile_caches`; 64 is the floor.
 _TILE_KINDS = ("map", "pupil", "design")
 _TILE_CACHE_SIZE = dict.fromkeys(_TILE_KINDS, 64)
-# Per kind: [served from the cache, built, evicted, traced directly (a tile's first fields)].
-_TILE_COUNTS = {k: [0, 0, 0, 0] for k in _TILE_KINDS}
+# Per kind: [served from the cache, made on a miss (built, or read from the tile store),
+# evicted, traced directly (a tile's first fields), read from the tile store].
+_TILE_COUNTS = {k: [0, 0, 0, 0, 0] for k in _TILE_KINDS}
 # Tiles warmed at start serve every field in them, from the first (see _tile_wanted).
 _WARMED_TILES: set[tuple] = set()
 _warming = False
@@ -492,9 +504,10 @@ class TileCacheStats:
     held: int
     size: int
     hits: int
-    builds: int
+    builds: int  # made on a miss: traced, or read from the tile store (``loaded``)
     evictions: int
     direct: int
+    loaded: int = 0
 
     @property
     def hit_rate(self) -> float:
@@ -519,10 +532,17 @@ def size_field_tile_caches(n_map: int, n_pupil: int, n_design: int) -> None:
         _TILE_CACHE_SIZE[kind] = max(_TILE_CACHE_SIZE[kind], 64, int(n))
 
 
-def _cached_tile(cache: dict[tuple, Any], kind: str, key: tuple,
-                 build: Callable[[], Any]) -> Any:
-    """``cache[key]``, built on first use; when the kind's size is held the oldest goes
-    (never a warmed tile while an unwarmed one can go)."""
+def _cached_tile(cache: dict[tuple, Any], kind: str, key: tuple, build: Callable[[], Any],
+                 finish: Callable[[Any], Any] | None = None,
+                 stored: Callable[[], tuple] | None = None) -> Any:
+    """``cache[key]``, made on first use; when the kind's size is held the oldest goes
+    (never a warmed tile while an unwarmed one can go).
+
+    ``build()`` fits the tile from ray traces; ``finish`` (default: none) turns the fit into
+    what the cache holds. With a tile store in use (:func:`use_field_tile_store`) and
+    ``stored()`` giving the tile's key on disk, the fit is read from the store when it holds
+    it, and stored when built (:mod:`.tile_store`).
+    """
     counts = _TILE_COUNTS[kind]
     if key in cache:
         counts[0] += 1
@@ -532,8 +552,105 @@ def _cached_tile(cache: dict[tuple, Any], kind: str, key: tuple,
         cache.pop(gone)
         counts[2] += 1
     counts[1] += 1
-    cache[key] = build()
+    store = active_tile_store() if stored is not None else None
+    fit, missing = None, True
+    if store is not None:
+        parts = stored()
+        fit, missing = _decode_tile(kind, store.load(kind, parts))
+        if missing:
+            fit = build()
+            store.save(kind, parts, _encode_tile(kind, fit))
+        else:
+            counts[4] += 1
+    if missing and store is None:
+        fit = build()
+    cache[key] = fit if finish is None else finish(fit)
     return cache[key]
+
+
+def _points_digest(x: np.ndarray, y: np.ndarray) -> str:
+    """A digest of the pupil points' values (a tile's key on disk)."""
+    import hashlib
+
+    return hashlib.blake2b(np.ascontiguousarray(x, dtype=np.float64).tobytes()
+                           + np.ascontiguousarray(y, dtype=np.float64).tobytes(),
+                           digest_size=16).hexdigest()
+
+
+@lru_cache(maxsize=1)
+def _store_salt() -> str:
+    """Names what builds a stored tile: this module's source and batoid's and numpy's
+    versions (:mod:`.tile_store`)."""
+    import hashlib
+
+    import batoid
+
+    code = hashlib.blake2b(Path(__file__).read_bytes(), digest_size=16).hexdigest()
+    return f"{code} batoid {batoid.__version__} numpy {np.__version__}"
+
+
+def use_field_tile_store(root: str | Path | None) -> TileStore | None:
+    """Keep this process's field tiles in the directory ``root`` across processes (None or
+    ``""``: off, the default); the store in use. A tile read from it is the tile this
+    process would build (:mod:`.tile_store`)."""
+    return use_tile_store(root, _store_salt()) if root else use_tile_store(None)
+
+
+# Field names of the arrays a stored tile holds (:func:`_encode_tile`): an absent tile (None:
+# the direct path) is stored as the single flag ``none``.
+_EDGE_FIELDS = ("n_points", "point", "centre", "variation", "aperture")
+
+
+def _encode_tile(kind: str, fit: Any) -> dict[str, np.ndarray]:
+    """A tile's fit as plain arrays (nothing to unpickle)."""
+    if fit is None:
+        return {"none": np.array(True)}
+    if kind == "design":
+        return {"coef": fit}
+    if kind == "pupil":
+        return {"apertures": fit[0], "poly": fit[1]}
+    poly, always, sweep, edges, rms = fit
+    out = {"poly": poly, "always": always, "sweep": sweep, "rms": np.array(rms)}
+    if edges is not None:
+        out |= {f"edges_{f}": np.asarray(getattr(edges, f)) for f in _EDGE_FIELDS}
+    return out
+
+
+def _decode_tile(kind: str, arrays: dict[str, np.ndarray] | None) -> tuple[Any, bool]:
+    """(fit, missing) from stored arrays; ``missing`` when there are none or they are not a
+    tile of ``kind`` (then it is built and stored again)."""
+    if arrays is None:
+        return None, True
+    try:
+        if "none" in arrays:
+            return None, False
+        if kind == "design":
+            coef = np.array(arrays["coef"], dtype=np.float64)
+            coef.setflags(write=False)
+            return _checked(coef, 2), False
+        if kind == "pupil":
+            return (_checked(arrays["apertures"], 2, apertures=True),
+                    _checked(arrays["poly"], 3)), False
+        edges = None
+        if "edges_point" in arrays:
+            e = {f: arrays[f"edges_{f}"] for f in _EDGE_FIELDS}
+            edges = _ApertureEdges(int(e["n_points"]), _checked(e["point"], 1),
+                                   _checked(e["centre"], 2), _checked(e["variation"], 3),
+                                   _checked(e["aperture"], 2, apertures=True))
+        fit = (_checked(arrays["poly"], 2), np.asarray(arrays["always"], dtype=bool),
+               _checked(arrays["sweep"], 1), edges, float(arrays["rms"]))
+        return fit, False
+    except (KeyError, ValueError, TypeError):
+        return None, True
+
+
+def _checked(a: np.ndarray, ndim: int, apertures: bool = False) -> np.ndarray:
+    """``a`` if it is a numeric array of ``ndim`` dimensions without NaN, and finite unless
+    it holds ``apertures`` (a circle's inner radius is -inf), else ValueError."""
+    ok = ~np.isnan(a) if apertures else np.isfinite(a)
+    if a.ndim != ndim or a.dtype.kind not in "fiu" or not ok.all():
+        raise ValueError(f"a stored tile's array has shape {a.shape} and dtype {a.dtype}")
+    return a
 
 
 def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
@@ -547,8 +664,13 @@ def _batoid_tiled(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray,
            op)
     if not _tile_wanted(_map_tile_requests, key, (fx, fy), "map"):
         return None
-    entry = _cached_tile(_MAP_TILE_CACHE, "map", key, lambda: _map_tile(
-        inst, side, defocus_mm, x, y, band, wavelength_nm, tile, tile_deg, op, annulus))
+    entry = _cached_tile(
+        _MAP_TILE_CACHE, "map", key,
+        lambda: _map_tile(inst, side, defocus_mm, x, y, band, wavelength_nm, tile, tile_deg,
+                          op, annulus),
+        finish=lambda fit: _map_tile_entry(fit, op),
+        stored=lambda: (repr(inst), side, float(defocus_mm), band, float(wavelength_nm),
+                        tile, float(tile_deg), _points_digest(x, y)))
     if entry is None:
         return None
     (centre, variation), always, sweep, edges, rms = entry
@@ -1055,7 +1177,8 @@ def _pupil_apertures(inst: Instrument, band: str, wavelength_nm: float,
         if _tile_wanted(_pupil_tile_requests, key, field_deg, "pupil"):
             entry = _cached_tile(_PUPIL_TILE_CACHE, "pupil", key,
                                  lambda: _pupil_tile(inst, band, wavelength_nm, side,
-                                                     defocus_mm, tile, tile_deg))
+                                                     defocus_mm, tile, tile_deg),
+                                 stored=lambda: (repr(inst), *key[1:]))
             if entry is not None:
                 aps, poly = entry
                 mono = _tile_monomials(*_tile_local(field_deg, tile, tile_deg))
@@ -1170,7 +1293,7 @@ def reset_field_tiles() -> None:
     _PUPIL_TILE_CACHE.clear()
     _WARMED_TILES.clear()
     for counts in _TILE_COUNTS.values():
-        counts[:] = [0, 0, 0, 0]
+        counts[:] = [0, 0, 0, 0, 0]
 
 
 def tile_of(field_deg: tuple[float, float], tile_deg: float) -> tuple[int, int]:
@@ -1298,7 +1421,8 @@ def design_zernikes_tiled(inst: Instrument, band: str, wavelength_nm: float,
     key = (inst, band, float(wavelength_nm), tile, float(tile_deg), int(jmax))
     if not _tile_wanted(_design_tile_requests, key, (fx, fy), "design"):
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
-    coef = _cached_tile(_DESIGN_TILE_CACHE, "design", key, lambda: _design_tile(*key))
+    coef = _cached_tile(_DESIGN_TILE_CACHE, "design", key, lambda: _design_tile(*key),
+                        stored=lambda: (repr(inst), *key[1:]))
     if coef is None:
         return design_zernikes_nm(inst, band, wavelength_nm, (fx, fy), jmax)
     out = _tile_monomials(*_tile_local((fx, fy), tile, tile_deg)) @ coef

@@ -1,0 +1,105 @@
+"""Field tiles kept on disk, so that a process starts with the tiles an earlier one built.
+
+A field tile (:mod:`.mapping`) is a fit of ray traces over a patch of the field: ~1.2 s of
+batoid per mapping tile, about 9 per LSST corner half-chip, and the design Zernikes' tiles
+besides. A worker serving frames builds every tile of its half-chips at start, so without a
+store each start of ``wavefront_node``, and each ``cwfs-ros replay`` of a frames bag, traces
+for about a minute on a 2-core machine before its first visit. The tiles depend only on the
+instrument, the band, the pupil grid and the code that fits them, so the store keeps them
+under a digest of exactly that:
+
+* the file name is the digest of the tile's own key (instrument, side, defocus, band,
+  wavelength, tile, tile size, a digest of the pupil points) and of a *salt*, which names the
+  fitting code (the source of :mod:`.mapping`), batoid's and numpy's versions and the
+  store's format: a change to any of them reads nothing written before;
+* a file holds plain arrays (``numpy.savez``, read with ``allow_pickle=False``): nothing in
+  it is executed;
+* a file is written whole under a temporary name and renamed, so that a reader, or another
+  worker writing the same tile, never sees part of one; a file that cannot be read, or whose
+  content the caller finds malformed, is rebuilt and replaced, never trusted.
+
+A tile read from the store is the one the process would have built, to the last bit (the
+same fit of the same traces; ``test_tile_store``). The store is off unless a caller turns it
+on (:func:`use_tile_store`): ``wavefront_node``'s workers and ``cwfs-ros replay`` do, with the
+``tile_store`` parameter (default ``$ROS_HOME/cwfs_ros/tiles``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["TileStore", "use_tile_store", "active_tile_store"]
+
+# Bump when the layout of a stored tile changes.
+STORE_FORMAT = 1
+
+
+class TileStore:
+    """A directory of field tiles, one ``.npz`` per tile, under ``<root>/<kind>/``.
+
+    Args:
+        root: the directory (made on the first write).
+        salt: names the code and libraries that build the tiles (see the module docstring).
+    """
+
+    def __init__(self, root: str | Path, salt: str) -> None:
+        self.root = Path(root).expanduser()
+        self.salt = str(salt)
+        self.writes = 0
+        self.write_errors: list[str] = []
+
+    def path(self, kind: str, parts: tuple) -> Path:
+        """The file of the tile ``parts`` (its key: strings, numbers, tuples of them)."""
+        digest = hashlib.blake2b(repr((STORE_FORMAT, self.salt, kind, parts)).encode(),
+                                 digest_size=20).hexdigest()
+        return self.root / kind / f"{digest}.npz"
+
+    def load(self, kind: str, parts: tuple) -> dict[str, np.ndarray] | None:
+        """The arrays stored for the tile, or None (not stored, or unreadable)."""
+        path = self.path(kind, parts)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except Exception:  # noqa: BLE001 - missing, truncated, not an npz (BadZipFile, ...):
+            return None  # the caller builds the tile and stores it anew
+
+    def save(self, kind: str, parts: tuple, arrays: dict[str, np.ndarray]) -> None:
+        """Store the tile's arrays (whole or not at all). A store that cannot be written
+        (read-only, full disk) costs the next process the build, nothing else: the error is
+        kept in :attr:`write_errors` (the last few), not raised."""
+        path = self.path(kind, parts)
+        tmp = None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tile-", suffix=".npz")
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays)
+            os.replace(tmp, path)
+            tmp = None
+            self.writes += 1
+        except OSError as exc:
+            self.write_errors = [*self.write_errors[-4:], f"{path}: {exc}"]
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+
+
+_ACTIVE: TileStore | None = None
+
+
+def use_tile_store(root: str | Path | None, salt: str = "") -> TileStore | None:
+    """Keep this process's field tiles in ``root`` from now on (None or ``""``: off).
+    Returns the store in use."""
+    global _ACTIVE
+    _ACTIVE = TileStore(root, salt) if root else None
+    return _ACTIVE
+
+
+def active_tile_store() -> TileStore | None:
+    """The store this process reads and writes its field tiles in, or None."""
+    return _ACTIVE

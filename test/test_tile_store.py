@@ -1,0 +1,106 @@
+"""Field tiles kept on disk (cwfs_ros.wfs.tile_store): a process that reads a tile from the
+store gets the tile a process that traces it builds, to the last bit, and a damaged store
+costs a rebuild, never a wrong tile or a crash."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cwfs_ros.wfs import mapping as mp
+from cwfs_ros.wfs.estimator import load_algorithm, pair_geometry, reset_caches, warm_star_fields
+from cwfs_ros.wfs.instrument import load_instrument
+from cwfs_ros.wfs.tile_store import use_tile_store
+
+# A patch inside one 0.125 deg tile per side, near the R00 half-chips (as test_workload).
+FI, FE = (-1.2549, -1.1903), (-1.1903, -1.1903)
+MID = (0.5 * (FI[0] + FE[0]), 0.5 * (FI[1] + FE[1]))
+STARS = ((FI[0] + 0.004, FI[1] - 0.007), (FE[0] - 0.006, FE[1] + 0.003))
+
+
+def _warm_and_read() -> tuple[dict, dict, object]:
+    """Warm the patch's tiles in a fresh process state; (counts made per kind, read from the
+    store per kind, the geometry of a pair at new star fields in the patch)."""
+    inst = load_instrument("lsst")
+    algo = load_algorithm("lsq")
+    wl = inst.wavelength_nm("r", None)
+    reset_caches()
+    warm_star_fields(inst, "r", wl, algo, {"intra": [FI], "extra": [FE]}, [MID])
+    stats = mp.field_tile_stats()
+    geom = pair_geometry(inst, "r", wl, *STARS, inst.defocal_offset_mm, algo)
+    return ({k: s.builds for k, s in stats.items()}, {k: s.loaded for k, s in stats.items()},
+            geom)
+
+
+def _same_geometry(a, b) -> None:
+    for name in ("mask_intra", "mask_extra", "weight", "intrinsic_nm"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for side in ("mapping_intra", "mapping_extra"):
+        for f in ("x_px", "y_px", "jxx", "jxy", "jyx", "jyy", "transmitted"):
+            np.testing.assert_array_equal(getattr(getattr(a, side), f),
+                                          getattr(getattr(b, side), f), err_msg=f"{side}.{f}")
+    np.testing.assert_array_equal(a.solver._matrix, b.solver._matrix)
+
+
+@pytest.fixture
+def store(tmp_path):
+    root = tmp_path / "tiles"
+    yield root
+    mp.use_field_tile_store(None)
+    reset_caches()
+
+
+def test_a_tile_read_from_the_store_is_the_tile_built(store):
+    mp.use_field_tile_store(None)
+    _, _, traced = _warm_and_read()  # no store: every tile traced
+    mp.use_field_tile_store(store)
+    made, loaded, first = _warm_and_read()  # an empty store: traced, then stored
+    # One map and one pupil tile per side, one design tile; none of them read.
+    assert made == {"map": 2, "pupil": 2, "design": 1} and sum(loaded.values()) == 0
+    files = sorted(p.relative_to(store).parts[0] for p in store.rglob("*.npz"))
+    assert files == ["design", "map", "map", "pupil", "pupil"]
+    builds = mp.map_tile_builds, mp.design_tile_builds
+    made, loaded, second = _warm_and_read()  # as a new process: every tile read
+    assert loaded == {"map": 2, "pupil": 2, "design": 1}
+    assert (mp.map_tile_builds, mp.design_tile_builds) == builds  # nothing traced
+    _same_geometry(first, traced)
+    _same_geometry(second, traced)
+
+
+def test_a_damaged_or_foreign_store_is_rebuilt_not_trusted(store):
+    mp.use_field_tile_store(store)
+    _, _, good = _warm_and_read()
+    files = sorted(store.rglob("*.npz"))
+    files[0].write_bytes(files[0].read_bytes()[:100])  # truncated
+    with np.load(files[1]) as z:  # a NaN where a number belongs
+        arrays = {k: z[k].copy() for k in z.files}
+    key = next(k for k, v in arrays.items() if v.dtype.kind == "f" and v.size > 1)
+    arrays[key].flat[0] = np.nan
+    np.savez(files[1], **arrays)
+    files[2].write_text("not a tile")
+    _, loaded, again = _warm_and_read()
+    assert sum(loaded.values()) == len(files) - 3  # the three damaged ones rebuilt
+    _same_geometry(again, good)
+    _, loaded, _ = _warm_and_read()  # and stored anew
+    assert sum(loaded.values()) == len(files)
+    # Another salt (other code or library versions) reads nothing written before.
+    use_tile_store(store, "another build")
+    reset_caches()
+    inst = load_instrument("lsst")
+    algo = load_algorithm("lsq")
+    warm_star_fields(inst, "r", inst.wavelength_nm("r", None), algo,
+                     {"intra": [FI], "extra": [FE]}, [MID])
+    assert sum(s.loaded for s in mp.field_tile_stats().values()) == 0
+
+
+def test_an_unwritable_store_costs_the_build_only(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    try:
+        s = mp.use_field_tile_store(blocker / "tiles")  # no directory can be made here
+        made, loaded, _ = _warm_and_read()
+        assert sum(made.values()) == 5 and sum(loaded.values()) == 0
+        assert s.writes == 0 and s.write_errors
+    finally:
+        mp.use_field_tile_store(None)
+        reset_caches()
