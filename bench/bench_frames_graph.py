@@ -16,7 +16,9 @@ wavefront_node reports ready on /diagnostics.
 
 Prints, per visit and in summary: the time from the last image published to the complete
 WavefrontVector (first visit, median, p90, max), whether every corner was valid, each
-corner's compute_ms (from its CornerWavefront), the node's warm-up time and its workers'
+corner's compute_ms (from its CornerWavefront), the node's warm-up time (the tiles a
+previous run left in the tile store, ``$ROS_HOME/cwfs_ros/tiles``, are read, not traced:
+``warm_tiles.<corner>`` says how many; a fresh ``ROS_HOME`` times a first start) and its workers'
 cache hit rates (from /diagnostics).
 
     .venv/bin/python bench/bench_frames_graph.py                 # 20 visits
@@ -191,7 +193,7 @@ def summarise(rows: list[dict], diag: dict[str, str], timeout_s: float) -> None:
         v = np.array([r["compute_ms"][c] for r in rows])
         print(f"compute_ms {c}: first {v[0]:.0f}, median {np.nanmedian(v[1:]):.0f}, "
               f"max {np.nanmax(v[1:]):.0f}")
-    keys = sorted(k for k in diag if k.startswith(("warm_s.", "cache.", "workers",
+    keys = sorted(k for k in diag if k.startswith(("warm_s.", "warm_tiles.", "cache.", "workers",
                                                    "affinity", "timeout.")))
     for k in keys:
         print(f"{k}: {diag[k]}")
