@@ -40,6 +40,9 @@ if os.environ.get("CWFS_CI") == "1":
 _N_DOMAINS = 102  # ROS-recommended ids 0..101 stay clear of the ephemeral port range
 _domain_counter = itertools.count()
 _domain_base = (os.getpid() * 37) % _N_DOMAINS
+# Never the domain a graph of the user's may run on: the default (0) and the shell's own.
+_USER_DOMAINS = {0} | ({int(os.environ["ROS_DOMAIN_ID"]) % _N_DOMAINS}
+                      if os.environ.get("ROS_DOMAIN_ID", "").isdigit() else set())
 
 
 @pytest.fixture(scope="session")
@@ -65,8 +68,13 @@ def _ros_home(_ros_home_module, tmp_path_factory, monkeypatch):
 
 
 def next_domain() -> int:
-    """A domain id in 0..101, unique within this pytest process (up to 102 uses)."""
-    return (_domain_base + next(_domain_counter)) % _N_DOMAINS
+    """A domain id in 1..101, never the shell's ``ROS_DOMAIN_ID``; one not used by this
+    pytest process for the last ~100 uses (the suite needs a few more than that: a test's
+    participants are gone long before its domain comes round again)."""
+    while True:
+        d = (_domain_base + next(_domain_counter)) % _N_DOMAINS
+        if d not in _USER_DOMAINS:
+            return d
 
 
 @pytest.fixture
