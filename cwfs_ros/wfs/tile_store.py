@@ -14,6 +14,7 @@ under a digest of exactly that:
   store's format: a change to any of them reads nothing written before;
 * a file holds plain arrays (``numpy.savez``, read with ``allow_pickle=False``): nothing in
   it is executed;
+* the tiles of other code or library versions are removed once unused for 30 days;
 * a file is written whole under a temporary name and renamed, so that a reader, or another
   worker writing the same tile, never sees part of one; a file that cannot be read, or whose
   content the caller finds malformed, is rebuilt and replaced, never trusted.
@@ -37,10 +38,13 @@ __all__ = ["TileStore", "use_tile_store", "active_tile_store"]
 
 # Bump when the layout of a stored tile changes.
 STORE_FORMAT = 1
+# The tiles of other code or library versions are removed after this long unused.
+PRUNE_AFTER_DAYS = 30.0
+USED_MARK = ".last_used"
 
 
 class TileStore:
-    """A directory of field tiles, one ``.npz`` per tile, under ``<root>/<kind>/``.
+    """A directory of field tiles, one ``.npz`` per tile, under ``<root>/<salt>/<kind>/``.
 
     Args:
         root: the directory (made on the first write).
@@ -50,6 +54,10 @@ class TileStore:
     def __init__(self, root: str | Path, salt: str) -> None:
         self.root = Path(root).expanduser()
         self.salt = str(salt)
+        # One directory per salt: the tiles of other code or library versions sit beside it
+        # and are removed once unused for PRUNE_AFTER_DAYS (:meth:`prune`).
+        self.dir = self.root / hashlib.blake2b(repr((STORE_FORMAT, self.salt)).encode(),
+                                               digest_size=8).hexdigest()
         self.writes = 0
         self.write_errors: list[str] = []
 
@@ -57,7 +65,32 @@ class TileStore:
         """The file of the tile ``parts`` (its key: strings, numbers, tuples of them)."""
         digest = hashlib.blake2b(repr((STORE_FORMAT, self.salt, kind, parts)).encode(),
                                  digest_size=20).hexdigest()
-        return self.root / kind / f"{digest}.npz"
+        return self.dir / kind / f"{digest}.npz"
+
+    def prune(self, max_age_days: float | None = None) -> list[Path]:
+        """Mark this store's directory used now and remove the directories of other salts
+        unused for ``max_age_days`` (default :data:`PRUNE_AFTER_DAYS`): an upgrade leaves
+        the old tiles behind, ~40 MB a set. Returns what was removed; errors are ignored (a
+        store that cannot be cleaned still works)."""
+        import shutil
+        import time
+
+        age_s = 86400.0 * (PRUNE_AFTER_DAYS if max_age_days is None else max_age_days)
+        removed = []
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            (self.dir / USED_MARK).touch()
+            for d in self.root.iterdir():
+                if d == self.dir or not d.is_dir() or d.is_symlink():
+                    continue
+                mark = d / USED_MARK
+                used = (mark if mark.exists() else d).stat().st_mtime
+                if time.time() - used > age_s:
+                    shutil.rmtree(d, ignore_errors=True)
+                    removed.append(d)
+        except OSError:
+            pass
+        return removed
 
     def load(self, kind: str, parts: tuple) -> dict[str, np.ndarray] | None:
         """The arrays stored for the tile, or None (not stored, or unreadable)."""
@@ -97,6 +130,8 @@ def use_tile_store(root: str | Path | None, salt: str = "") -> TileStore | None:
     Returns the store in use."""
     global _ACTIVE
     _ACTIVE = TileStore(root, salt) if root else None
+    if _ACTIVE is not None:
+        _ACTIVE.prune()
     return _ACTIVE
 
 
