@@ -50,6 +50,23 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+# Every participant of the suite stays on this host. With the default range (SUBNET) each
+# one announces itself by multicast on the network, and a machine next to this one running
+# the same suite (same commit, same domain ids) joins its graphs: a foreign publisher on a
+# test's topic, a foreign node of the same name whose services cannot be reached. LOCALHOST
+# does not separate processes on this host: the domain ids do that.
+DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+TEST_DISCOVERY_RANGE = "LOCALHOST"
+os.environ[DISCOVERY_ENV] = TEST_DISCOVERY_RANGE
+
+
+@pytest.fixture(autouse=True)
+def _discovery_on_this_host(monkeypatch):
+    """Every test starts with discovery kept to this host, whatever an earlier test in this
+    process left in the environment (the demo's OFF, a bringup --sim's LOCALHOST)."""
+    monkeypatch.setenv(DISCOVERY_ENV, TEST_DISCOVERY_RANGE)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _ros_home_module(tmp_path_factory):
     """``$ROS_HOME`` of a module's shared graphs: a directory of its own (ofc_node keeps its

@@ -55,7 +55,6 @@ def loop(ros_domain, ros_context, spin, monkeypatch):
     """A started ofc_node (no rotator) and a tester publishing vectors and recording the
     corrections and ofc_node's /diagnostics, spinning on the test's domain."""
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
-    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     ofc = spin(quiet_ofc_node(ros_context))
     tester = spin(rclpy.create_node("tester", context=ros_context))
     pub = tester.create_publisher(WavefrontVector, "aos/wfs/wavefront", OUTPUT_QOS)
@@ -135,7 +134,6 @@ def test_bringup_starts_both_nodes_active_and_no_autostart_leaves_them_for_the_c
     """``run_nodes`` as ``cwfs-ros bringup`` calls it: both nodes active by default; with
     autostart off, unconfigured, then taken through the whole lifecycle from the CLI."""
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
-    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     small = ["-p", "wavefront_node:corners:=[R00]", "-p", "wavefront_node:workers:=1"]
 
     def run(autostart: bool, script) -> dict:
@@ -222,7 +220,6 @@ def test_a_configure_that_fails_exits_nonzero_and_leaves_the_node_unconfigured(
     from cwfs_ros.ros.wavefront_node import WavefrontNode
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
-    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     missing = tmp_path / "no_such_selection.yaml"
     wf = spin(WavefrontNode(context=ros_context, autostart=False, parameter_overrides=[
         Parameter("corners", value=["R00"]), Parameter("workers", value=1),

@@ -52,7 +52,6 @@ GUARDS = [
 def _param_set(domain: int, node: str, name: str, value: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
                PYTHONPATH=str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
     return subprocess.run([sys.executable, "-m", "cwfs_ros.cli", "param", "set", node, name,
                            value], env=env, cwd=REPO_ROOT, capture_output=True, text=True,
                           timeout=120)
@@ -72,7 +71,6 @@ def _param_set_many(domain: int, node: str, pairs: list[tuple[str, str]]
         "print('@@' + json.dumps(out))\n")
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
                PYTHONPATH=str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
     argv = [sys.executable, "-c", code, node] + [x for p in pairs for x in p]
     r = subprocess.run(argv, env=env, cwd=REPO_ROOT, capture_output=True, text=True,
                        timeout=300)

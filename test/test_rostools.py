@@ -33,7 +33,6 @@ def graph(ros_domain, monkeypatch):
     from cwfs_ros.ros.ofc_node import OfcNode
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
-    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     ofc = OfcNode(context=ctx)
