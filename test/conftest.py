@@ -1,7 +1,8 @@
 """Shared pytest fixtures: repository root and isolated ROS 2 contexts.
 
 Every ROS test gets its own ``rclpy.Context`` on its own DDS domain id, so tests
-(and concurrent pytest runs on one host) do not discover each other's nodes.
+(and concurrent pytest runs on one host) do not discover each other's nodes; discovery is
+kept to this host, so a suite running on another machine does not either.
 Subprocess nodes started by a test should get ``ROS_DOMAIN_ID=<ros_domain>``.
 """
 
@@ -28,6 +29,16 @@ os.environ.setdefault(
     "FASTRTPS_DEFAULT_PROFILES_FILE", str(REPO_ROOT / "config" / "fastdds_profile.xml")
 )
 
+from cwfs_ros.ros.launch import DISCOVERY_ENV  # noqa: E402
+
+# Every participant of the suite stays on this host. With the default range (SUBNET) each
+# one announces itself by multicast on the network, and a machine next to this one running
+# the same suite (same commit, same domain ids) joins its graphs: a foreign publisher on a
+# test's topic, a foreign node of the same name whose services cannot be reached. LOCALHOST
+# does not separate processes on this host: the domain ids do that.
+TEST_DISCOVERY_RANGE = "LOCALHOST"
+os.environ[DISCOVERY_ENV] = TEST_DISCOVERY_RANGE
+
 # CI (`.ci/run` sets CWFS_CI=1) replays the same hypothesis examples every run and keeps no
 # example database: a landing is decided by the code, not by which random inputs came up.
 # Local runs keep exploring new examples.
@@ -50,20 +61,11 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
-# Every participant of the suite stays on this host. With the default range (SUBNET) each
-# one announces itself by multicast on the network, and a machine next to this one running
-# the same suite (same commit, same domain ids) joins its graphs: a foreign publisher on a
-# test's topic, a foreign node of the same name whose services cannot be reached. LOCALHOST
-# does not separate processes on this host: the domain ids do that.
-DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
-TEST_DISCOVERY_RANGE = "LOCALHOST"
-os.environ[DISCOVERY_ENV] = TEST_DISCOVERY_RANGE
-
-
 @pytest.fixture(autouse=True)
 def _discovery_on_this_host(monkeypatch):
-    """Every test starts with discovery kept to this host, whatever an earlier test in this
-    process left in the environment (the demo's OFF, a bringup --sim's LOCALHOST)."""
+    """Every test starts with discovery kept to this host, whatever code run by an earlier
+    test left in the environment (``bringup --sim`` sets the range for the rest of its
+    process; the demo sets OFF while its nodes start)."""
     monkeypatch.setenv(DISCOVERY_ENV, TEST_DISCOVERY_RANGE)
 
 

@@ -52,6 +52,7 @@ from cwfs_ros.layout import (
     corner_topic,
     image_topic,
 )
+from cwfs_ros.ros.launch import DISCOVERY_ENV
 from cwfs_ros.sim.perturbation import rigid_perturbation, wavefront_error_nm
 
 __all__ = [
@@ -63,10 +64,6 @@ __all__ = [
     "wavefront_error_nm",
     "write_report",
 ]
-
-# Discovery-range setting that keeps every participant of this process to itself.
-_ISOLATE_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
-
 
 @dataclass
 class LoopConfig:
@@ -251,9 +248,9 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     files = _params_files(config, Path(workdir))
     # rcl reads the discovery range when the context is initialised (in run_nodes, below);
     # the caller's environment is restored once the nodes exist.
-    saved_env = os.environ.get(_ISOLATE_ENV)
+    saved_env = os.environ.get(DISCOVERY_ENV)
     if not config.visible:
-        os.environ[_ISOLATE_ENV] = "OFF"
+        os.environ[DISCOVERY_ENV] = "OFF"
     domain = config.domain_id
     if domain is None:
         domain = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
@@ -267,7 +264,7 @@ def run_closed_loop(config: LoopConfig, *, workdir: str | Path,
     try:
         ready.wait(60)
         if not config.visible:
-            _restore_env(_ISOLATE_ENV, saved_env)
+            _restore_env(DISCOVERY_ENV, saved_env)
         if "nodes" not in started:
             raise LoopError("the nodes did not start (see the error above)"
                             + (f", exit code {exit_code[0]}" if exit_code else ""))
