@@ -129,6 +129,12 @@ def test_wavefront_node_killed_mid_visit_recovers_and_publishes_nothing_stale(ro
                  "the restarted wavefront_node to be ready")
         wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20,
                  "rediscovery")
+        # The killed process's writer stays in the graph until its lease expires (3 s,
+        # config/fastdds_profile.xml), and ofc_node acts on no vector while its input has two
+        # publishers (docs/reliability.md, "Who may act"). A restart that is ready sooner
+        # than that would see visit B refused as untrusted_source, by design.
+        wait_for(lambda: ofc.count_publishers("aos/wfs/wavefront") == 1, 20,
+                 "the killed node's writer to leave ofc_node's graph")
         publish(stamp_a, keys[5:])            # the rest of visit A reaches the new node
         publish(stamp_b, keys)                # and a complete visit B
         wait_for(lambda: any(stamp_to_ns(d.header.stamp) == stamp_b for d in dofs), 60,
