@@ -72,8 +72,12 @@ class DetectionConfig:
     """Parameters of the detector (``config/selection.yaml``, section ``detection``).
 
     Attributes:
-        bin_px: binning factor of the frame for background and matched filter (the donut is
-            ~120 px across, so 4 x 4 binning keeps ~30 px per donut and costs 16x less).
+        bin_px: binning factor of the frame for background and matched filter.  A donut is
+            ~130 px across with a ~26 px ring, so 8 x 8 binning keeps ~16 binned px per
+            donut and a 3 px ring; centroids and shapes are measured at full resolution.
+            Against 4 x 4 the selection of the simulated frames is the same (blends, faint
+            and isolated stars, centroids) at two thirds of the detection time
+            (docs/performance.md, Frames).
         mesh_px: side of a background mesh cell, full-resolution pixels.  Larger than a
             donut, so that a cell is never mostly donut.
         detect_snr: matched-filter S/N above which a peak is a source (used for blend
@@ -105,7 +109,7 @@ class DetectionConfig:
         max_candidates: at most this many peaks are measured (brightest first).
     """
 
-    bin_px: int = 4
+    bin_px: int = 8
     mesh_px: int = 256
     detect_snr: float = 8.0
     min_snr: float = 40.0
