@@ -104,6 +104,23 @@ def test_an_implausible_estimate_exits_3_and_prints_nothing():
     assert {c["name"]: c["outcome"] for c in out["checks"]}["plausible"] == "fail"
 
 
+def test_a_wrong_field_that_stays_plausible_warns_that_the_loop_has_not_settled():
+    """FAM R34_S12 at its true field settles near its fixed point; told a field 0.55 deg
+    away, the estimate is still plausible (no flag) but the loop keeps moving by nm, and the
+    settled check says what to look at."""
+    true = ["--field-intra", "0.706", "1.646", "--field-extra", "0.706", "1.646"]
+    wrong = ["--field-intra", "1.176", "1.176", "--field-extra", "1.176", "1.176"]
+    details = {}
+    for name, field in (("true", true), ("wrong", wrong)):
+        proc = run_cli("estimate", *R34, *FAM_ARGS, *field, "--json")
+        assert proc.returncode == 0, proc.stderr
+        out = json.loads(proc.stdout)
+        assert out["flags"] == []
+        details[name] = {c["name"]: c for c in out["checks"]}["settled"]["detail"]
+    assert "WARNING" not in details["true"]
+    assert details["wrong"].startswith("WARNING") and "field angles" in details["wrong"]
+
+
 def test_a_caustic_estimate_exits_3():
     """The 1.5 mm FAM pair told 1.0 mm: the compensation folds."""
     proc = run_cli("estimate", *R22, *FAM_ARGS, "--field-intra", "0", "0", "--field-extra",

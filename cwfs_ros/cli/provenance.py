@@ -46,6 +46,10 @@ __all__ = [
 FITS_KEYS = {"field_x": "FIELD_X", "field_y": "FIELD_Y", "defocus": "DEFOCUS"}
 # The fraction of the sensor's own defocus (as Z4) a departure from design may reach.
 PLAUSIBLE_FRACTION = 0.5
+# An outer loop still moving by more than this (nm rms) at its iteration limit is not near a
+# fixed point: on a consistent pair the last update is ~0.05 nm, the solver's tolerance;
+# a wrong field angle, defocus or exchanged images leave it at ~10 nm.
+UNSETTLED_WARN_NM = 1.0
 _MAGIC = ((b"\x89PNG", "a PNG picture"), (b"\xff\xd8\xff", "a JPEG picture"),
           (b"GIF8", "a GIF picture"), (b"II*\x00", "a TIFF picture"),
           (b"MM\x00*", "a TIFF picture"), (b"%PDF", "a PDF document"),
@@ -188,10 +192,23 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
               f"largest departure from design Z{int(result.noll[worst])} = "
               f"{dep[worst]:.0f} nm, limit {limit:.0f} nm (half the sensor's own defocus)",
               flags=bool(abs(dep[worst]) > limit)),
-        Check("settled", "yes" if result.converged else "no",
-              f"last update {last:.3g} nm after {result.iterations} iterations (yes: below "
-              "the solver's tolerance; no is not an error)"),
+        _settled(result, last),
     ]
+
+
+def _settled(result: Any, last_nm: float) -> Check:
+    """Whether the outer loop stopped moving: ``no`` by a fraction of a nm is a loop that ran
+    out of iterations near its fixed point; by more than :data:`UNSETTLED_WARN_NM` the model
+    does not fit the images, and the detail says so."""
+    what = f"last update {last_nm:.3g} nm after {result.iterations} iterations"
+    if result.converged:
+        return Check("settled", "yes", f"{what} (below the solver's tolerance)")
+    if last_nm > UNSETTLED_WARN_NM:
+        return Check("settled", "no", f"WARNING: {what}, still moving by more than "
+                     f"{UNSETTLED_WARN_NM:g} nm: the model does not fit these images. Check "
+                     "the field angles, the defocal offset and which image is intra-focal; "
+                     "do not use these numbers until it settles")
+    return Check("settled", "no", f"{what}: near its fixed point, not an error")
 
 
 def software_versions() -> dict[str, str]:

@@ -185,7 +185,8 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
     if flux <= 0 or snr < MIN_SNR:
         raise FlatImageError(
             f"{name} image holds no donut: flux {flux:.4g} at S/N {snr:.1f} "
-            f"(minimum {MIN_SNR:g})"
+            f"(minimum {MIN_SNR:g}) around its light's centroid; a stamp holds one donut "
+            "(frames with several stars: cwfs_ros.frames.estimate_corner_frames)"
         )
     body = work[body_mask]
     _check_edges(work, centre, outer_radius_px, margin_px,
