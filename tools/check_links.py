@@ -21,8 +21,12 @@ FENCE = re.compile(r"^\s*(```|~~~)")
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor for a heading text (inline code and emphasis marks dropped)."""
-    text = re.sub(r"[`*_]{1,2}(?=\S)|(?<=\S)[`*_]{1,2}", "", heading)
+    """GitHub's anchor for a heading text (inline code and emphasis marks dropped).
+
+    An underscore inside a word (``measurement_model``) is not emphasis: it stays.
+    """
+    text = re.sub(r"`|\*{1,2}(?=\S)|(?<=\S)\*{1,2}", "", heading)
+    text = re.sub(r"(?<![0-9A-Za-z])_{1,2}(?=\S)|(?<=\S)_{1,2}(?![0-9A-Za-z])", "", text)
     text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", text)
     text = text.strip().lower()
     text = re.sub(r"[^\w\- ]", "", text)

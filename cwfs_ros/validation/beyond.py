@@ -74,12 +74,13 @@ def noise_floor(opts: Options) -> tuple[list[Verdict], dict]:
     lim10, lim50 = _crossing(levels, med, 10.0), _crossing(levels, med, 50.0)
     bright = float(med[-1])
 
-    def fmt(v: float | None) -> str:
-        return "not reached" if v is None else f"{v:.2g}"
+    def reaches(nm: float, v: float | None) -> str:
+        return (f"not {nm:g} nm within {levels[-1]:.0e} photons" if v is None
+                else f"{nm:g} nm at {v:.2g} photons")
 
     ok = bool(np.isfinite(slope) and 0.85 <= slope <= 1.15)
     v = Verdict("Noise floor (split R44)", ok,
-                f"WFE reaches 50 nm at {fmt(lim50)} and 10 nm at {fmt(lim10)} photons per "
+                f"WFE reaches {reaches(50.0, lim50)} and {reaches(10.0, lim10)} per "
                 f"donut (sky {sky:g}/px); {bright:.1f} nm at {levels[-1]:.0e}; noise "
                 f"~ (sqrt(N+B)/N)^{slope:.2f}, B = {sky_e:.2g} sky e",
                 "the noise part follows shot noise sqrt(N+B)/N (exponent 1 +- 0.15)",
