@@ -347,3 +347,22 @@ def test_replay_remaps_a_camera_drivers_topics_and_orients_its_stamps(recorded_r
     assert cli_main([*base, "--out", str(tmp_path / "x"), *remaps,
                      "-p", "sensors.R00.intra.rot:=3"]) == 2
     assert "did you mean 'sensors.R00.intra.rot90'?" in capsys.readouterr().err
+
+
+def test_replay_summary_names_each_refused_correction_and_why(tmp_path):
+    from cwfs_ros.cli.replay import DofRow, ReplayResult
+
+    def row(visit: int, valid: bool, status: str) -> DofRow:
+        return DofRow(visit, visit * 10**9, valid, status, 1.0, 0.5, 10, False, [0.0] * 50,
+                      [0.0] * 50)
+
+    dofs = [row(1, False, "no_rotator_angle: no camera rotator angle received yet"),
+            row(2, True, "ok")] + [row(k, False, f"corner_invalid: case {k}")
+                                   for k in range(3, 10)]
+    text = ReplayResult(tmp_path / "bag", tmp_path, 72, [], dofs, None, {}, {}, {}).format()
+    assert "9 DoF corrections (1 valid)" in text
+    assert ("correction of visit 1 refused: no_rotator_angle: no camera rotator angle "
+            "received yet") in text
+    assert "correction of visit 2 refused" not in text
+    assert "correction of visit 6 refused: corner_invalid: case 6" in text
+    assert "correction of visit 7 refused" not in text and "... and 3 more refused" in text

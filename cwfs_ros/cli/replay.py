@@ -183,6 +183,10 @@ class Comparison:
         return "\n".join(lines)
 
 
+# Refused corrections named in the summary; the rest are in dof.csv.
+_REFUSED_SHOWN = 5
+
+
 @dataclass
 class ReplayResult:
     """Everything a replay produced (see the module docstring for the files)."""
@@ -206,6 +210,11 @@ class ReplayResult:
                  f"({d_valid} valid)"]
         if self.rejections:
             lines.append(f"  {len(self.rejections)} inputs rejected, e.g. {self.rejections[0]}")
+        refused = [r for r in self.dofs if not r.valid]
+        for r in refused[:_REFUSED_SHOWN]:
+            lines.append(f"  correction of visit {r.visit} refused: {r.status}")
+        if len(refused) > _REFUSED_SHOWN:
+            lines.append(f"  ... and {len(refused) - _REFUSED_SHOWN} more refused (dof.csv)")
         lines.append(self.comparison.format() if self.comparison is not None
                      else "live comparison: no live CornerWavefront / DofCorrection in the bag")
         lines += [f"{k}: {v}" for k, v in self.files.items()]
