@@ -5,6 +5,7 @@
     │   └── ParamsFileError             a ROS parameter file that cannot be used
     ├── ImageError (ValueError)         a donut image that cannot be used (``reason`` tag)
     ├── BagError                        a rosbag2 bag that cannot be written, read or decoded
+    ├── TileStoreError                  a stored field tile that is not the one asked for
     ├── LaunchError (RuntimeError)      a node that cannot be started
     ├── ToolError                       a graph tool's target is missing or refused the request
     ├── LoopError (RuntimeError)        the closed-loop demo could not run
@@ -20,8 +21,8 @@ from dataclasses import dataclass
 __all__ = [
     "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
     "DonutCutError", "ShapeMismatchError", "StampTooSmallError", "SaturatedImageError",
-    "SwappedImagesError", "ParamsFileError", "BagError", "LaunchError", "ToolError",
-    "LoopError", "CliError", "Problem",
+    "SwappedImagesError", "ParamsFileError", "BagError", "TileStoreError", "LaunchError",
+    "ToolError", "LoopError", "CliError", "Problem",
 ]
 
 
@@ -80,6 +81,11 @@ class BagError(CwfsError):
 
     def __init__(self, message: str) -> None:
         super().__init__(" ".join(str(message).split()))
+
+
+class TileStoreError(CwfsError):
+    """A stored field tile that cannot be used (unreadable, damaged, another tile's): the
+    tile is rebuilt; the store records why (:mod:`cwfs_ros.wfs.tile_store`)."""
 
 
 class LaunchError(CwfsError, RuntimeError):

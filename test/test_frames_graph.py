@@ -2,7 +2,9 @@
 (plus a blended pair and a too-faint star); wavefront_node detects, pairs and combines the
 donuts and publishes the corner with n_pairs and a per-term uncertainty. With
 ``input_mode: frames`` the warm-up builds the field tiles of the corner's half-chips, so the
-first visit builds none. Real DDS, one process, the test's own domain."""
+first visit builds none. The tile store is a directory that cannot be made, which the warm-up
+says in the log and on /diagnostics and which costs nothing else. Real DDS, one process, the
+test's own domain."""
 
 from __future__ import annotations
 
@@ -28,8 +30,10 @@ def _diag(node) -> dict[str, str]:
     return {kv.key: kv.value for kv in node.diagnostics().values}
 
 
-def test_frames_are_selected_paired_and_combined(ros_context):
+def test_frames_are_selected_paired_and_combined(ros_context, tmp_path):
     P = Parameter
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")  # no directory can be made under a file
     cam = CameraSimNode(context=ros_context, parameter_overrides=[
         P("corners", value=["R00"]),  # the one corner the wavefront node serves
         P("visit_period_s", value=0.0), P("frames", value=True), P("frame_rows", value=1000),
@@ -39,7 +43,7 @@ def test_frames_are_selected_paired_and_combined(ros_context):
     wf = WavefrontNode(context=ros_context, parameter_overrides=[
         P("corners", value=["R00"]), P("workers", value=1), P("assemble", value=False),
         P("solver", value="lsq"), P("visit_timeout_s", value=60.0),
-        P("input_mode", value="frames")])
+        P("input_mode", value="frames"), P("tile_store", value=str(blocker / "tiles"))])
     tester = rclpy.create_node("frames_tester", context=ros_context)
     got: list[CornerWavefront] = []
     truth: list[SimTruth] = []
@@ -56,6 +60,8 @@ def test_frames_are_selected_paired_and_combined(ros_context):
         wait_for(lambda: wf.ready, 180, "warm-up")
         warm = _diag(wf)
         assert int(warm["warm_tiles.R00"].split()[0]) > 0, warm
+        assert "failed writes" in warm["tile_store.R00"], warm
+        assert "cannot write" in warm["tile_store.R00"] and str(blocker) in warm["tile_store.R00"]
         assert trigger.wait_for_service(timeout_sec=10)
         wait_for(lambda: cam.pubs[("R00", "intra")].get_subscription_count() > 0, 10,
                  "discovery")

@@ -78,8 +78,13 @@ def test_a_damaged_or_foreign_store_is_rebuilt_not_trusted(store):
     arrays[key].flat[0] = np.nan
     np.savez(files[1], **arrays)
     files[2].write_text("not a tile")
+    s = mp.use_field_tile_store(store)  # as a new process
     _, loaded, again = _warm_and_read()
     assert sum(loaded.values()) == len(files) - 3  # the three damaged ones rebuilt
+    assert s.rejected == 3, s.problems
+    said = "\n".join(s.problems)
+    assert "unreadable" in said and "content is damaged" in said, said
+    assert s.report().startswith("3 stored tiles rejected and rebuilt"), s.report()
     _same_geometry(again, good)
     _, loaded, _ = _warm_and_read()  # and stored anew
     assert sum(loaded.values()) == len(files)
@@ -93,6 +98,21 @@ def test_a_damaged_or_foreign_store_is_rebuilt_not_trusted(store):
     assert sum(s.loaded for s in mp.field_tile_stats().values()) == 0
 
 
+def test_a_tile_stored_under_another_tiles_name_is_rejected_and_said(store):
+    s = mp.use_field_tile_store(store)
+    _, _, good = _warm_and_read()
+    one, other = sorted((s.dir / "map").glob("*.npz"))  # the two sides' map tiles
+    other.write_bytes(one.read_bytes())  # a whole, valid tile of the other side
+    s = mp.use_field_tile_store(store)  # as a new process
+    _, loaded, again = _warm_and_read()
+    assert loaded == {"map": 1, "pupil": 2, "design": 1}
+    assert s.rejected == 1 and "another tile" in s.report(), s.report()
+    _same_geometry(again, good)  # the other side's tile was not used
+    s = mp.use_field_tile_store(store)
+    _, loaded, _ = _warm_and_read()  # and the right one stored in its place
+    assert loaded == {"map": 2, "pupil": 2, "design": 1} and s.rejected == 0
+
+
 def test_an_unwritable_store_costs_the_build_only(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
@@ -101,6 +121,7 @@ def test_an_unwritable_store_costs_the_build_only(tmp_path):
         made, loaded, _ = _warm_and_read()
         assert sum(made.values()) == 5 and sum(loaded.values()) == 0
         assert s.writes == 0 and s.write_errors
+        assert "5 failed writes" in s.report() and "cannot write" in s.report(), s.report()
     finally:
         mp.use_field_tile_store(None)
         reset_caches()

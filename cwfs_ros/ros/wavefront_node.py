@@ -493,6 +493,8 @@ class WavefrontNode(ManagedNode):
             self.workload.record_warm(int(info.get("pid", 0)), info.get("caches"))
         if not info.get("ok"):
             self.get_logger().error(f"warm-up of {corner} failed: {info.get('error')}")
+        if info.get("tile_store"):  # a rejected tile or failed write: rebuilt, next start slow
+            self.get_logger().warning(f"tile store of {corner}'s worker: {info['tile_store']}")
         if done:
             self.get_logger().info(
                 f"workers warm after {time.monotonic() - t0:.2f} s"
@@ -873,6 +875,8 @@ class WavefrontNode(ManagedNode):
                         f"{float(w.get('tiles_s', 0.0)):.1f} s "
                         f"({int(w.get('tiles_loaded', 0))} from the tile store)") for c, w in
                        sorted(self._warm.items()) if w.get("tiles")]
+            values += [(f"tile_store.{c}", str(w["tile_store"])) for c, w in
+                       sorted(self._warm.items()) if w.get("tile_store")]
         return values
 
     def _health(self, warm: dict[str, dict], lifecycle: str,

@@ -300,6 +300,7 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
         tiles, loaded = _warm_frames(corner, inst, settings, algo, frames) if frames else (0, 0)
         return {"corner": corner, "ok": True, "pid": os.getpid(),
                 "geometry_s": t1 - t0, "tiles": tiles, "tiles_loaded": loaded,
+                "tile_store": _tile_store_report(),
                 "tiles_s": time.perf_counter() - t2,
                 "total_s": time.perf_counter() - t0, "error": "",
                 "caches": worker_cache_counts()}
@@ -307,6 +308,14 @@ def warm_corner(corner: str, field_intra_deg: tuple[float, float],
         return {"corner": corner, "ok": False, "pid": os.getpid(),
                 "geometry_s": 0.0, "total_s": time.perf_counter() - t0,
                 "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _tile_store_report() -> str:
+    """This worker's tile-store problems in one line ("" = none, or no store)."""
+    from cwfs_ros.wfs.tile_store import active_tile_store
+
+    store = active_tile_store()
+    return store.report() if store is not None else ""
 
 
 def _warm_frames(corner: str, inst: Any, settings: EstimatorSettings, algo: Any,

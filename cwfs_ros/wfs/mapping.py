@@ -556,7 +556,10 @@ def _cached_tile(cache: dict[tuple, Any], kind: str, key: tuple, build: Callable
     fit, missing = None, True
     if store is not None:
         parts = stored()
-        fit, missing = _decode_tile(kind, store.load(kind, parts))
+        arrays = store.load(kind, parts)
+        fit, missing = _decode_tile(kind, arrays)
+        if missing and arrays is not None:
+            store.reject(kind, parts, "its arrays are not a tile of this kind")
         if missing:
             fit = build()
             store.save(kind, parts, _encode_tile(kind, fit))

@@ -13,11 +13,15 @@ under a digest of exactly that:
   fitting code (the source of :mod:`.mapping`), batoid's and numpy's versions and the
   store's format: a change to any of them reads nothing written before;
 * a file holds plain arrays (``numpy.savez``, read with ``allow_pickle=False``): nothing in
-  it is executed;
+  it is executed. Beside them it holds a digest of its own key and one of its arrays' names,
+  dtypes, shapes and bytes, both checked on every read: a file copied or renamed over
+  another tile's, or damaged, is rejected and rebuilt, never used for the wrong field;
 * the tiles of other code or library versions are removed once unused for 30 days;
 * a file is written whole under a temporary name and renamed, so that a reader, or another
   worker writing the same tile, never sees part of one; a file that cannot be read, or whose
-  content the caller finds malformed, is rebuilt and replaced, never trusted.
+  content the caller finds malformed, is rebuilt and replaced, never trusted;
+* every rejected file and failed write is kept (:attr:`TileStore.problems`,
+  :meth:`TileStore.report`): ``wavefront_node`` logs them and shows them on ``/diagnostics``.
 
 A tile read from the store is the one the process would have built, to the last bit (the
 same fit of the same traces; ``test_tile_store``). The store is off unless a caller turns it
@@ -34,13 +38,20 @@ from pathlib import Path
 
 import numpy as np
 
+from cwfs_ros.errors import TileStoreError
+
 __all__ = ["TileStore", "use_tile_store", "active_tile_store"]
 
 # Bump when the layout of a stored tile changes.
-STORE_FORMAT = 1
+STORE_FORMAT = 2
 # The tiles of other code or library versions are removed after this long unused.
 PRUNE_AFTER_DAYS = 30.0
 USED_MARK = ".last_used"
+# The arrays a stored file holds besides the tile's: the digest of its key, and of the rest.
+KEY_FIELD = "__tile_key__"
+SUM_FIELD = "__tile_sum__"
+# How many problems (rejected files, failed writes) a store keeps to report.
+PROBLEMS_KEPT = 5
 
 
 class TileStore:
@@ -59,13 +70,38 @@ class TileStore:
         self.dir = self.root / hashlib.blake2b(repr((STORE_FORMAT, self.salt)).encode(),
                                                digest_size=8).hexdigest()
         self.writes = 0
-        self.write_errors: list[str] = []
+        self.rejected = 0  # files read but not used (unreadable, damaged, another tile's)
+        self.failed_writes = 0
+        self.write_errors: list[str] = []  # the last few failed writes
+        self.problems: list[str] = []  # the last few rejected files and failed writes
 
     def path(self, kind: str, parts: tuple) -> Path:
         """The file of the tile ``parts`` (its key: strings, numbers, tuples of them)."""
         digest = hashlib.blake2b(repr((STORE_FORMAT, self.salt, kind, parts)).encode(),
                                  digest_size=20).hexdigest()
         return self.dir / kind / f"{digest}.npz"
+
+    def key_digest(self, kind: str, parts: tuple) -> str:
+        """The digest of the tile's key that its file holds (not its name's digest: a file
+        renamed over another's keeps its own)."""
+        return hashlib.blake2b(repr(("key", STORE_FORMAT, self.salt, kind, parts)).encode(),
+                               digest_size=32).hexdigest()
+
+    def reject(self, kind: str, parts: tuple, why: str) -> None:
+        """Record that the stored file of a tile was not used, and why (the caller rebuilds
+        it and stores it anew)."""
+        self.rejected += 1
+        self._problem(f"rejected {kind} tile {self.path(kind, parts).name}: {why}")
+
+    def report(self) -> str:
+        """The store's problems in one line, or "" when there were none."""
+        if not self.problems:
+            return ""
+        return (f"{self.rejected} stored tiles rejected and rebuilt, {self.failed_writes}"
+                f" failed writes in {self.root} (last: {self.problems[-1]})")
+
+    def _problem(self, text: str) -> None:
+        self.problems = [*self.problems[-(PROBLEMS_KEPT - 1):], text]
 
     def prune(self, max_age_days: float | None = None) -> list[Path]:
         """Mark this store's directory used now and remove the directories of other salts
@@ -93,13 +129,22 @@ class TileStore:
         return removed
 
     def load(self, kind: str, parts: tuple) -> dict[str, np.ndarray] | None:
-        """The arrays stored for the tile, or None (not stored, or unreadable)."""
+        """The arrays stored for the tile, or None: not stored, or rejected (unreadable, its
+        key or content digest wrong: recorded, :meth:`reject`)."""
         path = self.path(kind, parts)
         try:
             with np.load(path, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except Exception:  # noqa: BLE001 - missing, truncated, not an npz (BadZipFile, ...):
+                arrays = {k: z[k] for k in z.files}
+        except FileNotFoundError:
+            return None
+        except Exception as exc:  # noqa: BLE001 - truncated, not an npz (BadZipFile, ...):
+            self.reject(kind, parts, f"unreadable ({type(exc).__name__}: {exc})")
             return None  # the caller builds the tile and stores it anew
+        try:
+            return _verified(arrays, self.key_digest(kind, parts))
+        except TileStoreError as exc:
+            self.reject(kind, parts, str(exc))
+            return None
 
     def save(self, kind: str, parts: tuple, arrays: dict[str, np.ndarray]) -> None:
         """Store the tile's arrays (whole or not at all). A store that cannot be written
@@ -107,19 +152,46 @@ class TileStore:
         kept in :attr:`write_errors` (the last few), not raised."""
         path = self.path(kind, parts)
         tmp = None
+        marked = {**arrays, KEY_FIELD: np.array(self.key_digest(kind, parts)),
+                  SUM_FIELD: np.array(_content_digest(arrays))}
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tile-", suffix=".npz")
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
+                np.savez(f, **marked)
             os.replace(tmp, path)
             tmp = None
             self.writes += 1
         except OSError as exc:
-            self.write_errors = [*self.write_errors[-4:], f"{path}: {exc}"]
+            self.failed_writes += 1
+            self.write_errors = [*self.write_errors[-(PROBLEMS_KEPT - 1):], f"{path}: {exc}"]
+            self._problem(f"cannot write {path}: {exc}")
         finally:
             if tmp is not None:
                 Path(tmp).unlink(missing_ok=True)
+
+
+def _content_digest(arrays: dict[str, np.ndarray]) -> str:
+    """A digest of the arrays' names, dtypes, shapes and bytes."""
+    h = hashlib.blake2b(digest_size=32)
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(repr((name, a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _verified(arrays: dict[str, np.ndarray], key_digest: str) -> dict[str, np.ndarray]:
+    """The tile's arrays of a stored file, after checking its key and content digests;
+    :class:`TileStoreError` when either is missing or wrong."""
+    key, total = arrays.pop(KEY_FIELD, None), arrays.pop(SUM_FIELD, None)
+    if key is None or total is None:
+        raise TileStoreError("it holds no key or content digest (not written by this store)")
+    if str(key) != key_digest:
+        raise TileStoreError("it holds another tile (its key digest differs)")
+    if str(total) != _content_digest(arrays):
+        raise TileStoreError("its content is damaged (the content digest differs)")
+    return arrays
 
 
 _ACTIVE: TileStore | None = None
