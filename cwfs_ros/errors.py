@@ -3,7 +3,7 @@
     CwfsError
     ├── ConfigError (ValueError)        a configuration file, parameter or parameter file
     │   └── ParamsFileError             a ROS parameter file that cannot be used
-    ├── ImageError (ValueError)         a donut image that cannot be used (``reason`` tag)
+    ├── ImageError (ValueError)         a donut image or frame that cannot be used (``reason``)
     ├── BagError                        a rosbag2 bag that cannot be written, read or decoded
     ├── TileStoreError                  a stored field tile that is not the one asked for
     ├── LaunchError (RuntimeError)      a node that cannot be started
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 __all__ = [
     "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
-    "DonutCutError", "ShapeMismatchError", "StampTooSmallError", "SaturatedImageError",
-    "SwappedImagesError", "ParamsFileError", "BagError", "TileStoreError", "LaunchError",
-    "ToolError", "LoopError", "CliError", "Problem",
+    "DonutCutError", "ShapeMismatchError", "FrameSizeError", "StampTooSmallError",
+    "SaturatedImageError", "SwappedImagesError", "ParamsFileError", "BagError",
+    "TileStoreError", "LaunchError", "ToolError", "LoopError", "CliError", "Problem",
 ]
 
 
@@ -54,6 +54,12 @@ class DonutCutError(ImageError):
 
 class ShapeMismatchError(ImageError):
     reason = "shape_mismatch"
+
+
+class FrameSizeError(ImageError):
+    """A frame larger than its half-chip, or the two halves of a sensor of different sizes."""
+
+    reason = "frame_size"
 
 
 class StampTooSmallError(ImageError):

@@ -183,3 +183,47 @@ def test_parameter_changes():
     assert pipe.apply({"pairing_tolerance_s", "sensors.R00.intra.flip"}) == ""
     assert pipe.pairing.tolerance_ns == 500_000_000
     assert pipe.orientations[("R00", "intra")].flip == "lr"
+
+
+def _uint16(side_px: int, top_pixels: int) -> Image:
+    rng = np.random.default_rng(side_px)
+    a = rng.normal(1000.0, 30.0, (side_px, side_px)).astype("<u2")  # a read-noise background
+    a[np.arange(top_pixels) % side_px, np.arange(top_pixels) // side_px + 5] = 65535
+    m = Image(height=side_px, width=side_px, encoding="16UC1", is_bigendian=0,
+              step=side_px * 2, data=a.tobytes())
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(T0, 1_000_000_000)
+    return m
+
+
+def test_full_scale_pixels_refuse_a_stamp_but_pass_a_frame_to_its_detection():
+    """16-bit pixels at 65535: a stamp (one donut) is refused ``saturated`` when it arrives;
+    a frame is not, and its job carries the full scale, at which detection calls a star
+    saturated whatever the configured level (test_selection)."""
+    p = params()
+    pipe = WavefrontPipeline(p.__getitem__, CORNERS)
+    rec, bad = pipe.record(_uint16(160, 3), "R00", "intra", 0.0)
+    assert bad is not None and bad.reason == "saturated" and rec.image is None
+    assert "3 pixel(s) at 65535, the full scale of 16UC1" in bad.message, bad.message
+    side = p["frame_min_side_px"]
+    for s in ("intra", "extra"):
+        rec, bad = pipe.record(_uint16(side, 40), "R04", s, 0.0)
+        assert bad is None and rec.full_scale_px == 40
+        step = pipe.add_record(rec)
+    job = pipe.job_for(step.pair)
+    assert isinstance(job, CornerFrameJob) and job.full_scale == 65535.0
+    floats = pipe.job_for(pair_of(pipe, "R40", side))
+    assert isinstance(floats, CornerFrameJob) and floats.full_scale is None
+
+
+def test_frames_taken_as_stamps_say_which_parameter_to_change():
+    """A camera that sends frames to a node told ``input_mode: stamps``: the estimator
+    refuses the image, and the corner's status names the parameter."""
+    p = params(input_mode="stamps")
+    pipe = WavefrontPipeline(p.__getitem__, CORNERS)
+    side = p["frame_min_side_px"]
+    out = run_job(pipe.job_for(pair_of(pipe, "R00", side, value=50.0)))
+    assert not out.valid
+    assert (f"{side}x{side} images taken as one-donut stamps because input_mode is stamps: "
+            "frames with several stars need input_mode frames") in out.status, out.status
+    small = pipe.job_for(pair_of(pipe, "R04", 160))
+    assert small.hint == ""

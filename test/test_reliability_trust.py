@@ -19,6 +19,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cwfs_msgs.msg import DofCorrection, WavefrontVector  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
 
 from cwfs_ros import layout  # noqa: E402
 from cwfs_ros.ofc import control as C  # noqa: E402
@@ -193,3 +194,47 @@ def test_an_impostor_that_sends_and_leaves_at_once_is_still_refused(ofc_graph, r
     pub.publish(good_vector(s, dx_um=500.0))
     wait_for(lambda: s in got, 10, "the producer's correction")
     assert got[s][0].valid, got[s][0].status
+
+
+def test_a_camera_that_came_and_went_between_visits_does_not_refuse_the_next_one(
+        ros_context, ros_domain, spin):
+    """An image topic (``at_most`` one camera): camera A sends a visit and ends, B matches and
+    ends without sending (a run that failed before its first image), and C starts after the
+    topic has settled: C's first image is trusted, because the check watches the topic on a
+    timer and saw A and B leave, not only when C's image arrives. A camera that matched and
+    left less than the settle time before an image is still refused."""
+    from sensor_msgs.msg import Image
+
+    from cwfs_ros.ros.common import PublisherTrust
+
+    node = spin(rclpy.create_node("wavefront_node", context=ros_context))
+    trust = PublisherTrust(node, "aos/wfs/R00/intra/image", 1, at_most=True)
+    verdicts: list[tuple[str, str | None]] = []
+    sub = node.create_subscription(Image, "aos/wfs/R00/intra/image",
+                                   lambda m: verdicts.append((m.header.frame_id,
+                                                              trust.problem())), OUTPUT_QOS)
+    trust.attach(sub)
+
+    def camera(name: str, send: bool) -> None:
+        cam = Impostor(ros_domain, "camera", Image, "aos/wfs/R00/intra/image")
+        try:
+            wait_for(lambda: cam.pub.get_subscription_count() > 0, 20, f"camera {name}")
+            if send:
+                n = len(verdicts)
+                cam.pub.publish(Image(header=Header(frame_id=name)))
+                wait_for(lambda: len(verdicts) > n, 10, f"camera {name}'s image")
+        finally:
+            cam.close()
+
+    try:
+        camera("A", send=True)
+        camera("B", send=False)
+        time.sleep(PublisherTrust.settle_s + 1.0)
+        camera("C", send=True)
+        camera("D", send=False)
+        camera("E", send=True)  # within the settle time of D leaving
+        assert [v[0] for v in verdicts] == ["A", "C", "E"], verdicts
+        assert verdicts[0][1] is None and verdicts[1][1] is None, verdicts
+        assert verdicts[2][1] is not None and "matched and left" in verdicts[2][1], verdicts
+    finally:
+        trust.detach()

@@ -30,6 +30,9 @@ def test_override_types_follow_the_declaration():
                             "-p", "dof_mask:=[true, false]"], {"ofc_node": OFC}) == []
     (p,) = check_overrides(["-p", "kp:=fast"], {"ofc_node": OFC})
     assert "ofc_node.kp is a double" in p and "'fast' is a string" in p
+    # rcl reads an exponent without a dot, or unsigned, as a double; YAML 1.1 as text.
+    assert check_overrides(["-p", "kp:=1e-3", "-p", "seeing_fwhm_arcsec:=1.0e0"],
+                           {"ofc_node": OFC}) == []
 
 
 def test_an_override_reaches_every_node_and_must_be_declared_by_one():
@@ -108,3 +111,17 @@ def test_bringup_sim_is_kept_to_this_host_unless_visible(monkeypatch, capsys):
     # The real loop (no --sim) follows the environment.
     monkeypatch.setenv(L.DISCOVERY_ENV, "SUBNET")
     assert _bringup(monkeypatch) == "SUBNET"
+
+
+def test_ros_arguments_before_ros_args_are_refused_with_where_they_go(capsys):
+    from cwfs_ros.cli.main import main
+
+    assert main(["bringup", "-p", "kp:=0.2"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("cwfs-ros bringup: error: unrecognized arguments: -p kp:=0.2; ROS "
+                           "arguments go after --ros-args: cwfs-ros bringup --ros-args -p "
+                           "kp:=0.2"), err
+    # A command that runs no node gets the plain usage error.
+    assert main(["validate", "-p", "kp:=0.2"]) == 2
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: -p kp:=0.2" in err and "--ros-args" not in err, err

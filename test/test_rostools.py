@@ -108,6 +108,11 @@ def test_param_set_changes_the_running_node_or_says_why_not(graph, capsys):
     code, out, err = _run(capsys, "param", "set", "ofc_node", "kp", "1")
     assert code == 1 and out == "" and "Set parameter failed" in err, err
     assert ofc.get_parameter("kp").value == 0.25
+    # Exponents YAML 1.1 reads as text are doubles, as rcl reads them in a file or -p.
+    code, out, _ = _run(capsys, "param", "set", "ofc_node", "kp", "2e-1")
+    assert code == 0 and ofc.get_parameter("kp").value == 0.2
+    code, out, _ = _run(capsys, "param", "set", "ofc_node", "kp", "3.0e-1")
+    assert code == 0 and ofc.get_parameter("kp").value == 0.3
 
 
 def test_param_dump_is_a_parameter_file_of_the_live_values(graph, capsys, tmp_path):

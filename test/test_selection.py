@@ -393,6 +393,8 @@ def test_corner_from_frames_end_to_end(intra_frame, extra_frame, telescope):
     assert counts.get("saturated", 0) == 1 and counts.get("donut_cut_by_edge", 0) == 1
     summary = res.summary()
     assert summary.startswith("ok: 2 pair(s)") and "1 too_faint" in summary, summary
+    assert summary.endswith("; 1000x900 windows of the 4000x2000 half-chips, taken as centred "
+                            "on their reference pixels"), summary
     # Each pair was estimated at its own stars' fields, the result is at the corner's.
     fields = {p.field_intra_deg for p in res.pairs}
     assert len(fields) == 2
@@ -451,6 +453,35 @@ def test_an_unexpected_error_drops_its_pair_only(intra_frame, extra_frame, monke
     assert [p.status for p in res] == ["internal_error", "ok"]
     assert res[0].message == "ValueError: injected"
     assert np.all(np.isnan(res[0].zernikes_nm)) and np.all(np.isfinite(res[1].zernikes_nm))
+
+
+def test_a_frame_with_more_sources_than_max_candidates_says_so(intra_frame, extra_frame):
+    """The detection measures the brightest ``max_candidates`` peaks of a frame; a corner
+    whose frame reached that cap says so in its status (the intra frame holds 8 sources)."""
+    cfg = SelectionConfig(detection=DetectionConfig(saturation_level=FULL_WELL,
+                                                    max_candidates=3))
+    res = estimate_corner_frames(intra_frame.image, extra_frame.image, corner="R00",
+                                 settings=EstimatorSettings(solver="lsq"), config=cfg)
+    assert len(res.detections["intra"]) == 3 and len(res.detections["extra"]) == 2
+    assert ("the intra frame reached max_candidates (3): fainter sources, if any, were not "
+            "measured") in res.summary(), res.summary()
+    assert "max_candidates" not in estimate_corner_frames(
+        intra_frame.image, extra_frame.image, corner="R00",
+        settings=EstimatorSettings(solver="lsq"), config=_config()).summary()
+
+
+def test_frames_that_cannot_be_placed_on_their_half_chips_are_refused():
+    """A frame larger than its 4000x2000 half-chip (a transposed readout), or the two halves
+    of one sensor in different sizes (one of them cut), would put every star at a wrong
+    field: refused ``frame_size`` before detection, naming the sizes."""
+    rng = np.random.default_rng(1)
+    whole = rng.poisson(30.0, (4000, 2000)).astype(float)
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, np.ascontiguousarray(whole.T), whole))
+    assert not res.valid and res.reason == "frame_size", res.status
+    assert "intra frame is 2000x4000" in res.status and "4000x2000 R00 SW1" in res.status
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, whole[:1000], whole))
+    assert not res.valid and res.reason == "frame_size", res.status
+    assert "intra frame is 1000x2000 and the extra 4000x2000" in res.status, res.status
 
 
 def test_frame_job_never_raises():
@@ -566,3 +597,23 @@ def test_a_frame_without_sky_noise_still_gives_its_donuts(telescope, halves):
     assert all(d.ok for d in dets), [d.message for d in dets]
     for s in stars:
         assert len(_near(dets, s)) == 1
+
+
+def test_a_16_bit_frame_clipped_at_full_scale_loses_only_its_saturated_star(intra_frame,
+                                                                             halves):
+    """The frame as a 16-bit camera sends it: the saturated star's plateau sits at 65535,
+    below the configured saturation level (1e5 counts). Given the frame's full scale, the
+    detection calls that star saturated and keeps the good ones; the configured level alone
+    would take the clipped star as a good one."""
+    counts = np.clip(np.rint(intra_frame.image * (65535.0 / FULL_WELL)), 0, 65535)
+    frame = counts.astype(np.uint16).astype(np.float64)
+    cfg = SelectionConfig()
+    assert cfg.detection.saturation_level > 65535
+    _, dets, _ = select_stamps(frame, halves["intra"], config=cfg, full_scale=65535.0)
+    near = _near(dets, SATURATED)
+    assert near and all(d.status == "saturated" for d in near), [d.status for d in near]
+    assert all("65535" in d.message for d in near), [d.message for d in near]
+    for star in GOOD:
+        assert any(d.ok for d in _near(dets, star)), f"good star {star} lost"
+    _, unaware, _ = select_stamps(frame, halves["intra"], config=cfg)
+    assert any(d.ok for d in _near(unaware, SATURATED))

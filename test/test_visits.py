@@ -164,9 +164,21 @@ def test_unknown_corner_and_side_are_rejected():
 
 def test_a_pair_with_an_undecodable_image_still_forms_and_names_the_problem():
     pb = PairingBuffer()
-    pb.add(img("R00", "intra", T0, error="unsupported_encoding: encoding 'rgb8' ..."))
+    bad = img("R00", "intra", T0, error="unsupported_encoding: encoding 'rgb8' ...")
+    bad.reason = "unsupported_encoding"
+    pb.add(bad)
     pair, _ = pb.add(img("R00", "extra", T0))
-    assert pair.error == "intra image unsupported_encoding: encoding 'rgb8' ..."
+    # The pair's reason leads the corner's status; the side's text does not repeat it.
+    assert pair.reason == "unsupported_encoding"
+    assert pair.error == "intra image: encoding 'rgb8' ..."
+    # Two images wrong for different reasons: the second keeps its own tag.
+    pb.add(bad := img("R04", "intra", T0, error="unsupported_encoding: encoding 'rgb8' ..."))
+    bad.reason = "unsupported_encoding"
+    other = img("R04", "extra", T0, error="bad_step: step 3 is less than the row size")
+    other.reason = "bad_step"
+    pair, _ = pb.add(other)
+    assert pair.error == ("intra image: encoding 'rgb8' ...; "
+                          "extra image: bad_step: step 3 is less than the row size")
 
 
 # ------------------------------------------------------------------ assembly

@@ -93,14 +93,33 @@ def _error(command: str | None, message: str) -> int:
     return EXIT_USAGE
 
 
+# Arguments that belong to ROS (rcl), not to a sub-command.
+_ROS_FLAGS = ("-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e",
+              "--enclave")
+
+
+def _unrecognized(args: argparse.Namespace, extra: Sequence[str]) -> str:
+    """The usage error for arguments no option takes, with the way to pass ROS arguments to
+    a command that runs nodes (``-p NAME:=VALUE`` before ``--ros-args``)."""
+    text = f"unrecognized arguments: {' '.join(extra)}"
+    looks_ros = any(t in _ROS_FLAGS or ":=" in t for t in extra)
+    if looks_ros and hasattr(args, "ros_args"):
+        ros = " ".join(extra)
+        text += (f"; ROS arguments go after --ros-args: {PROG} {args.command} --ros-args "
+                 f"{ros}")
+    return text
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (argparse exits are returned too)."""
     limit_blas_threads()
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
     except SystemExit as exc:  # --help, --version, usage errors (already printed)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    if extra:
+        return _error(args.command, _unrecognized(args, extra))
 
     try:
         return int(args.func(args) or 0)

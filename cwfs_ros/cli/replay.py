@@ -778,7 +778,7 @@ def params_overlay(rules: Sequence[str], params_files: Sequence[str | Path],
     import yaml
 
     from cwfs_ros.errors import ConfigError
-    from cwfs_ros.ros.params import check_overrides, yaml_kind
+    from cwfs_ros.ros.params import check_overrides, parse_parameter_text, yaml_kind
 
     if not rules:
         return None
@@ -793,7 +793,7 @@ def params_overlay(rules: Sequence[str], params_files: Sequence[str | Path],
         name, _, text = rule.partition(":=")
         node = next(n for n, d in declared.items() if name in d)
         body.setdefault(node, {"ros__parameters": {}})["ros__parameters"][name] = (
-            yaml.safe_load(text))
+            parse_parameter_text(text))
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "params_overrides.yaml"
     path.write_text(yaml.safe_dump(body, sort_keys=False))

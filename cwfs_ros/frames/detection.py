@@ -800,8 +800,8 @@ def _judge(m: dict, near: float, blend_d: float, shape: tuple[int, int], stamp_p
         msgs.append(f"{at}: its {stamp_px} px stamp extends beyond the {nx}x{ny} frame")
     if cfg.saturation_level is not None and m["peak_value"] >= cfg.saturation_level:
         reasons.append(REASON_SATURATED)
-        msgs.append(f"{at} has a pixel of {m['peak_value']:.4g} >= saturation level "
-                    f"{cfg.saturation_level:.4g}")
+        msgs.append(f"{at} has a pixel of {m['peak_value']:.6g} >= saturation level "
+                    f"{cfg.saturation_level:.6g}")
     k = cfg.shape_nsigma
     lim_hole = cfg.max_hole_fraction + k * m["hole_sigma"]
     lim_out = cfg.max_outside_fraction + k * m["outside_sigma"]

@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from cwfs_ros.config import config_dir
-from cwfs_ros.errors import ConfigError, CwfsError, ImageError
+from cwfs_ros.errors import ConfigError, CwfsError, FrameSizeError, ImageError
 from cwfs_ros.frames.combination import (
     CombinationConfig,
     CombinedEstimate,
@@ -63,6 +63,7 @@ __all__ = [
     "CornerFrameResult",
     "CornerFrameJob",
     "select_stamps",
+    "frame_window",
     "pair_stars",
     "estimate_pairs",
     "estimate_corner_frames",
@@ -163,7 +164,8 @@ class StarStamp:
 
 
 def select_stamps(frame: np.ndarray, half: HalfChip, *, instrument: str = "lsst",
-                  band: str = "r", config: SelectionConfig | None = None, pad_px: int = 0
+                  band: str = "r", config: SelectionConfig | None = None, pad_px: int = 0,
+                  full_scale: float | None = None
                   ) -> tuple[list[StarStamp], list[DetectedDonut], Background]:
     """Detect the donuts of one half-chip frame, cut the accepted ones, give their fields.
 
@@ -174,6 +176,8 @@ def select_stamps(frame: np.ndarray, half: HalfChip, *, instrument: str = "lsst"
         config: selection parameters.
         pad_px: the stamps are cut ``pad_px`` larger on every side than the instrument's
             stamp size (real pixels, rather than :func:`cwfs_ros.wfs.orientation.pad_stamp`'s fill).
+        full_scale: the top of the frame's integer range as sent (None: floats): a donut
+            with a pixel there is ``saturated`` even when the configured level is higher.
 
     Returns:
         ``(stamps, detections, background)``: the accepted stars, brightest first; every
@@ -189,6 +193,9 @@ def select_stamps(frame: np.ndarray, half: HalfChip, *, instrument: str = "lsst"
     if det_cfg.saturation_level is None and inst_sat is not None:
         # No level of its own: the instrument's (the estimator's stamps, same units).
         det_cfg = det_cfg.with_overrides(saturation_level=float(inst_sat))
+    if full_scale is not None and not (det_cfg.saturation_level or np.inf) <= full_scale:
+        # The converter clips there: such a pixel's true value is unknown.
+        det_cfg = det_cfg.with_overrides(saturation_level=float(full_scale))
     dets, bg = detect_donuts(img, outer_radius_px=r_out, inner_radius_px=r_in,
                              stamp_px=stamp_px, config=det_cfg, name=half.side)
     model = half_chip_model(half, inst, band, shape_px=img.shape)
@@ -432,6 +439,7 @@ class CornerFrameResult:
     worker_pid: int = 0
     noll: tuple[int, ...] = _NOLL
     reduced_chi2: float = float("nan")
+    note: str = ""  # what the status adds: windows, the candidate cap reached
 
     @property
     def caustic(self) -> bool:
@@ -464,6 +472,8 @@ class CornerFrameResult:
         if rejected:
             parts.append("rejected " + ", ".join(f"{v} {k}" for k, v in
                                                  sorted(rejected.items())))
+        if self.note:
+            parts.append(self.note)
         return "; ".join(parts)
 
     def rejected_counts(self) -> dict[str, int]:
@@ -494,7 +504,8 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
                            settings: EstimatorSettings = _DEFAULT_SETTINGS,
                            config: SelectionConfig | None = None,
                            sensors: dict[str, dict[str, HalfChip]] | None = None,
-                           stamp_ns: int = 0) -> CornerFrameResult:
+                           stamp_ns: int = 0, full_scale: float | None = None
+                           ) -> CornerFrameResult:
     """The whole pipeline for one corner: frames in, combined wavefront out.
 
     Args:
@@ -506,6 +517,8 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
             noise model).
         sensors: half-chip geometry (default ``config/sensors/lsst_corners.yaml``).
         stamp_ns: visit time stamp, passed through.
+        full_scale: the top of the frames' integer range as sent (None: floats); a donut
+            with a pixel there is ``saturated`` (:func:`select_stamps`).
 
     Returns:
         A :class:`CornerFrameResult`.  No usable pair gives ``valid=False`` with a reason:
@@ -522,18 +535,20 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
     if corner not in geo:
         raise ConfigError(f"unknown corner {corner!r}; known: {sorted(geo)}")
     hi, he = geo[corner]["intra"], geo[corner]["extra"]
+    window = frame_window(intra_frame, extra_frame, hi, he)
     kw = dict(instrument=settings.instrument, band=settings.band, config=cfg,
-              pad_px=settings.pad_px)
+              pad_px=settings.pad_px, full_scale=full_scale)
     st_in, det_in, _ = select_stamps(intra_frame, hi, **kw)
     st_ex, det_ex, _ = select_stamps(extra_frame, he, **kw)
     t1 = time.perf_counter()
+    note = "; ".join(n for n in (window, _cap_note(det_in, det_ex, cfg)) if n)
     pairs = pair_stars(st_in, st_ex, max_pairs=cfg.max_pairs, method=cfg.pairing,
                        centres_deg=(hi.field_deg, he.field_deg))
     results = estimate_pairs(pairs, settings)
     t2 = time.perf_counter()
     done = partial(_corner_result, corner=corner, stamp_ns=stamp_ns, field_deg=hi.mid_deg,
                    detections={"intra": tuple(det_in), "extra": tuple(det_ex)},
-                   solver=settings.solver, times_s=(t0, t1, t2))
+                   solver=settings.solver, times_s=(t0, t1, t2), note=note)
     if not st_in or not st_ex:
         return done(False, "no_donuts", _no_donuts_message(
             {"intra": (st_in, det_in), "extra": (st_ex, det_ex)}), None, results)
@@ -562,7 +577,8 @@ def _corner_result(valid: bool, reason: str, msg: str, comb: CombinedEstimate | 
                    res: list[PairResult], *, corner: str, stamp_ns: int,
                    field_deg: tuple[float, float],
                    detections: dict[str, tuple[DetectedDonut, ...]], solver: str,
-                   times_s: tuple[float, float, float]) -> CornerFrameResult:
+                   times_s: tuple[float, float, float], note: str = ""
+                   ) -> CornerFrameResult:
     """The corner's result: the combination's Zernikes and uncertainties when ``valid``
     (NaN otherwise), the status ``"<reason>: <msg>"`` when not, and the stage timings from
     ``times_s`` (start, stamps selected, pairs estimated) to now."""
@@ -578,7 +594,59 @@ def _corner_result(valid: bool, reason: str, msg: str, comb: CombinedEstimate | 
         {"detect": (t1 - t0) * 1e3, "estimate": (t2 - t1) * 1e3,
          "combine": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3},
         solver, os.getpid(),
-        reduced_chi2=comb.reduced_chi2 if comb is not None else float("nan"))
+        reduced_chi2=comb.reduced_chi2 if comb is not None else float("nan"), note=note)
+
+
+def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfChip,
+                 extra: HalfChip) -> str:
+    """Check the two frames' sizes against their half-chips (``shape_px``, focal-plane
+    orientation) and say how a smaller one is placed ("" when both are whole).
+
+    A frame may be a window of its half-chip, read out centred on the reference pixel (the
+    simulator's frames are); a larger one, or a corner whose two halves differ in size where
+    the sensor file says they are alike, cannot be placed: one was transposed, cut or
+    belongs to another sensor file.
+
+    Raises:
+        FrameSizeError: a frame larger than its half-chip, or halves of different sizes.
+    """
+    shapes = {}
+    for name, frame, half in (("intra", intra_frame, intra), ("extra", extra_frame, extra)):
+        rows, cols = np.shape(frame)[:2]
+        if half.orientation.rot90 % 2:
+            rows, cols = cols, rows
+        shapes[name] = (int(rows), int(cols))
+        if rows > half.shape_px[0] or cols > half.shape_px[1]:
+            raise FrameSizeError(
+                f"the {name} frame is {rows}x{cols} (rows x cols, focal-plane orientation), "
+                f"larger than the {half.shape_px[0]}x{half.shape_px[1]} {half.corner} "
+                f"{half.sensor} half-chip of the sensor file: a transposed or turned "
+                f"readout, or the wrong sensor file")
+    if intra.shape_px == extra.shape_px and shapes["intra"] != shapes["extra"]:
+        raise FrameSizeError(
+            f"the intra frame is {shapes['intra'][0]}x{shapes['intra'][1]} and the extra "
+            f"{shapes['extra'][0]}x{shapes['extra'][1]}: the two halves of one sensor are read "
+            f"out alike, so one was cut (its stars' field positions would be wrong)")
+    if shapes["intra"] == intra.shape_px and shapes["extra"] == extra.shape_px:
+        return ""
+    if intra.reference_px is not None:
+        return (f"{shapes['intra'][0]}x{shapes['intra'][1]} windows placed by the sensor "
+                f"file's reference_px")
+    return (f"{shapes['intra'][0]}x{shapes['intra'][1]} windows of the "
+            f"{intra.shape_px[0]}x{intra.shape_px[1]} half-chips, taken as centred on their "
+            f"reference pixels")
+
+
+def _cap_note(det_in: list[DetectedDonut], det_ex: list[DetectedDonut],
+              cfg: SelectionConfig) -> str:
+    """Which half reached the detection's ``max_candidates`` ("" when neither did): its
+    fainter sources, if any, were not measured."""
+    cap = cfg.detection.max_candidates
+    full = [s for s, d in (("intra", det_in), ("extra", det_ex)) if len(d) >= cap]
+    if not full:
+        return ""
+    return (f"the {' and '.join(full)} frame{'s' if len(full) > 1 else ''} reached "
+            f"max_candidates ({cap}): fainter sources, if any, were not measured")
 
 
 def _no_donuts_message(sides: dict[str, tuple[list[StarStamp], list[DetectedDonut]]]
@@ -621,6 +689,7 @@ class CornerFrameJob:
     settings: EstimatorSettings = EstimatorSettings()
     sensor_config: str = ""  # "" = config/sensors/lsst_corners.yaml
     selection_config: str = ""  # "" = config/selection.yaml
+    full_scale: float | None = None  # the frames' integer full scale (None: floats)
 
 
 def run_corner_frame_job(job: CornerFrameJob) -> CornerFrameResult:
@@ -632,7 +701,7 @@ def run_corner_frame_job(job: CornerFrameJob) -> CornerFrameResult:
         cfg = load_selection_config(job.selection_config or None, solver=job.settings.solver)
         return estimate_corner_frames(job.intra, job.extra, corner=job.corner,
                                       settings=job.settings, config=cfg, sensors=sensors,
-                                      stamp_ns=job.stamp_ns)
+                                      stamp_ns=job.stamp_ns, full_scale=job.full_scale)
     except Exception as exc:  # noqa: BLE001 - a worker must report, not die
         if isinstance(exc, ImageError):
             reason = str(getattr(exc, "reason", "bad_image"))

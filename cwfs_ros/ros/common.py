@@ -428,8 +428,11 @@ class PublisherTrust:
     against the endpoint gids the graph lists now), while a restarted producer, whose new
     endpoint is listed in place of the old one, is trusted at once (the receiver cannot tell a
     restart from a replacement anyway). A writer that came and went is forgotten once the
-    count has been ``expected`` for :attr:`settle_s`. Anything else refuses the message
-    (``untrusted_source``). The matched status is read
+    count has been ``expected`` (with ``at_most``: at most ``expected``) for :attr:`settle_s`.
+    Anything else refuses the message (``untrusted_source``). The matched status is read
+    when a message is taken and every :attr:`poll_s` on a timer, so that a writer that
+    matched and left without sending (a camera process that ended between visits) is seen
+    leaving, not first noticed when the next producer's first message arrives. It is read
     synchronously from an event handle of the subscription's own (no executor involved); a
     crashed publisher stays matched until its discovery lease expires
     (config/fastdds_profile.xml). ``expected`` 0 turns the check off. The queries read the
@@ -437,6 +440,7 @@ class PublisherTrust:
     """
 
     settle_s = 2.0
+    poll_s = 0.25  # the timer's period: a few microseconds a read
 
     def __init__(self, node: Any, topic: str, expected: int, at_most: bool = False) -> None:
         self._node = node
@@ -447,6 +451,7 @@ class PublisherTrust:
         self.at_most = bool(at_most)
         self.sub: Any = None
         self._event: Any = None
+        self._timer: Any = None
         self._lock = threading.Lock()
         self._baseline: int | None = None  # writers ever matched when last trusted
         self._baseline_gids: set[bytes] = set()  # their endpoints then
@@ -454,8 +459,9 @@ class PublisherTrust:
         self._changed_at = -1e9
         self._what = ""
 
-    def attach(self, sub: Any) -> None:
-        """Watch ``sub`` (the subscription of :attr:`topic`)."""
+    def attach(self, sub: Any, callback_group: Any = None) -> None:
+        """Watch ``sub`` (the subscription of :attr:`topic`), also every :attr:`poll_s` on a
+        timer of the node's in ``callback_group`` (None: the node's default group)."""
         from rclpy.event_handler import QoSSubscriptionEventType
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
@@ -463,12 +469,25 @@ class PublisherTrust:
         with sub.handle:
             self._event = _rclpy.EventHandle(
                 sub.handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MATCHED)
+        if self.expected > 0:
+            self._timer = self._node.create_timer(self.poll_s, self._poll_quietly,
+                                                  callback_group=callback_group)
 
     def detach(self) -> None:
-        """Release the event handle (before the subscription is destroyed)."""
-        event, self._event, self.sub = self._event, None, None
+        """Release the timer and the event handle (before the subscription is destroyed)."""
+        timer, self._timer = self._timer, None
+        if timer is not None:
+            self._node.destroy_timer(timer)
+        with self._lock:
+            event, self._event, self.sub = self._event, None, None
         if event is not None:
             event.destroy_when_not_in_use()
+
+    def _poll_quietly(self) -> None:
+        try:
+            self._poll()
+        except Exception:  # noqa: BLE001, S110 - the next message's check reads it again
+            pass
 
     def _matched(self) -> tuple[int, int] | None:
         """(writers ever matched, writers matched now), read now."""
@@ -481,12 +500,13 @@ class PublisherTrust:
                                             int(status.current_count))
 
     def _poll(self) -> tuple[int, int] | None:
-        """Read the matched status and note a change of it."""
-        seen = self._matched()
-        if seen is None:
-            return None
-        now = time.monotonic()
+        """Read the matched status and note a change of it (from a message's check and the
+        timer: one reader of the event at a time)."""
         with self._lock:
+            seen = self._matched()
+            if seen is None:
+                return None
+            now = time.monotonic()
             first = self._seen is None
             changed = seen != self._seen and not (first and seen[0] == 0)
             if changed and self._baseline is None and seen[0] == seen[1] == self.expected:
@@ -496,11 +516,16 @@ class PublisherTrust:
                 self._what = (f"the writers matched on {self.topic} changed "
                               f"({self._seen[1] if self._seen else 0} -> {seen[1]} now, "
                               f"{seen[0]} ever)")
-            elif seen[1] == self.expected and seen[0] != self._baseline and \
+            elif self._settled_count(seen[1]) and seen[0] != self._baseline and \
                     now - self._changed_at >= self.settle_s:
                 self._trust_now(seen[0])
             self._seen = seen
         return seen
+
+    def _settled_count(self, matched: int) -> bool:
+        """Whether ``matched`` writers may become the trusted ones once settled: exactly
+        ``expected``, or with ``at_most`` any number up to it (a camera that has left)."""
+        return matched <= self.expected if self.at_most else matched == self.expected
 
     def _gids(self) -> set[bytes]:
         return {bytes(i.endpoint_gid)

@@ -14,6 +14,7 @@ have declared their parameters, refuse unknown names and wrong types
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +22,39 @@ from cwfs_ros.config import config_dir, ros_home
 from cwfs_ros.errors import ParamsFileError
 
 __all__ = ["AUTO_STATE_FILE", "check_declared", "check_overrides", "close_match",
-           "default_params_file", "flatten", "read_params_file", "ros_home", "state_file_path",
-           "yaml_kind"]
+           "default_params_file", "flatten", "parse_parameter_text", "read_params_file",
+           "ros_home", "state_file_path", "yaml_kind"]
 
 #: ``state_file`` value that means the node's own file under :func:`ros_home`.
 AUTO_STATE_FILE = "auto"
+
+# Numbers with an exponent that YAML 1.1 (PyYAML) reads as text and rcl as doubles: no dot
+# before the exponent (1e-3), or an unsigned exponent (1.0e308).
+_EXPONENT_FLOAT = r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"
+
+
+@lru_cache(maxsize=1)
+def _parameter_loader() -> type:
+    """A safe YAML loader that types values as rcl does: also 1e-3 and 1.0e308 are doubles."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_EXPONENT_FLOAT),
+                                 list("-+0123456789."))
+    return Loader
+
+
+def parse_parameter_text(text: str) -> Any:
+    """A parameter value written as YAML (a file, ``-p NAME:=VALUE``, ``param set``), typed
+    as rcl types it: PyYAML's YAML 1.1 reads ``1e-3`` or ``1.0e308`` as text, rcl as a
+    double. Raises ``yaml.YAMLError`` for text that is not YAML."""
+    import yaml
+
+    return yaml.load(text, Loader=_parameter_loader())  # noqa: S506 - a SafeLoader subclass
 
 
 def default_params_file() -> Path:
@@ -63,7 +92,7 @@ def read_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
 
     p = Path(path)
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = parse_parameter_text(p.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ParamsFileError(f"parameter file {p}: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
@@ -178,7 +207,7 @@ def check_overrides(ros_args: Sequence[str], declared: Mapping[str, Mapping[str,
                             + close_match(name, known))
             continue
         try:
-            given = yaml_kind(yaml.safe_load(text))
+            given = yaml_kind(parse_parameter_text(text))
         except yaml.YAMLError:
             given = "string"
         for n, kind in sorted(holders.items()):

@@ -45,6 +45,7 @@ import yaml
 
 from cwfs_ros.argtypes import nonnegative_float, positive_float, positive_int
 from cwfs_ros.errors import ToolError
+from cwfs_ros.ros.params import parse_parameter_text
 
 __all__ = [
     "EXIT_NOT_FOUND",
@@ -467,15 +468,28 @@ def param_get(args: argparse.Namespace) -> int:
     return 0
 
 
+def parameter_value(text: str) -> Any:
+    """The ``rcl_interfaces/ParameterValue`` of ``param set``'s VALUE: YAML as ``ros2 param
+    set`` reads it, except that a number with an exponent YAML 1.1 takes for text (1e-3,
+    1.0e308) is a double, as rcl reads it in a file or a ``-p`` override."""
+    from rcl_interfaces.msg import ParameterType, ParameterValue
+    from rclpy.parameter import get_parameter_value
+
+    value = get_parameter_value(string_value=text)
+    parsed = parse_parameter_text(text)
+    if value.type == ParameterType.PARAMETER_STRING and isinstance(parsed, float):
+        return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=parsed)
+    return value
+
+
 def param_set(args: argparse.Namespace) -> int:
     from rcl_interfaces.msg import Parameter as ParameterMsg
     from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import get_parameter_value
 
     with graph_node() as (node, executor):
         full = _wait_for_node(node, executor, args.node, args.timeout)
         request = SetParameters.Request(parameters=[ParameterMsg(
-            name=args.name, value=get_parameter_value(string_value=args.value))])
+            name=args.name, value=parameter_value(args.value))])
         resp = _call(node, executor, f"{full}/set_parameters", SetParameters, request,
                      args.timeout)
     result = resp.results[0]

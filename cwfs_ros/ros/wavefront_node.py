@@ -243,7 +243,7 @@ class WavefrontNode(ManagedNode):
                 self._image_subs[(c, s)] = sub
                 trust = PublisherTrust(self, topic, int(self._param("max_image_publishers")),
                                        at_most=True)
-                trust.attach(sub)
+                trust.attach(sub, callback_group=self._cb_timers)
                 self._image_trust[(c, s)] = trust
         if self.assemble:
             for c in CORNERS:

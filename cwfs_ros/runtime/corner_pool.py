@@ -65,6 +65,7 @@ class CornerJob:
     settings: EstimatorSettings
     orient_intra: Orientation = Orientation()
     orient_extra: Orientation = Orientation()
+    hint: str = ""  # added to the status of an image the estimator refuses
 
 
 @dataclass(frozen=True)
@@ -177,6 +178,8 @@ def _estimate_corner(job: CornerJob) -> CornerOutcome:
         if s.pad_px > 0 and not isinstance(exc, ConfigError):
             msg += (f" (received stamps {_shapes(job)} px, padded by {s.pad_px} px on each "
                     "side)")
+        if job.hint and not isinstance(exc, ConfigError):
+            msg += f" ({job.hint})"
         return fail(str(reason), msg)
     except Exception as exc:  # noqa: BLE001 - a worker must report, not die
         return fail("internal_error", f"{type(exc).__name__}: {exc}")

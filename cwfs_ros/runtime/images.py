@@ -29,6 +29,8 @@ __all__ = [
     "background_floor",
     "decode_image",
     "inspect_pixels",
+    "full_scale",
+    "full_scale_message",
 ]
 
 # Single-channel encodings accepted: name -> numpy base type (byte order set per message).
@@ -159,12 +161,18 @@ CLIP_PEAK_RATIO = 4.0
 CLIP_LEVELS = 3
 
 
-def inspect_pixels(image: np.ndarray, encoding: str) -> None:
+def inspect_pixels(image: np.ndarray, encoding: str, *, full_scale_ok: bool = False) -> int:
     """Refuse pixels that a decoder alone can tell are wrong; raise :class:`ImageDecodeError`.
 
     Args:
         image: the decoded image (float64) as the message declares it.
         encoding: its encoding (a key of :data:`ENCODINGS`).
+        full_scale_ok: integer pixels at full scale are counted, not refused: a frame with
+            several stars, where they make only their own star ``saturated`` (detection);
+            a stamp holds one donut, refused whole.
+
+    Returns:
+        The number of integer pixels at the top of their type's range (0 for floats).
 
     Reasons:
         ``byte_order``: integers: the image as declared is :data:`BYTE_ORDER_RATIO` times
@@ -207,11 +215,9 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
             if depth is not None:
                 _check_wrap(image, f"{depth}-bit", 0.0, float(1 << depth),
                             background_floor(image), peak=bounds[1])
-        if n_top:
-            raise ImageDecodeError(
-                "saturated", f"{n_top} pixel(s) at {info.max}, the full scale of {encoding}: "
-                "the converter is saturated and their true values are unknown")
-        return
+        if n_top and not full_scale_ok:
+            raise ImageDecodeError("saturated", full_scale_message(n_top, encoding))
+        return n_top
     finite = image[np.isfinite(image)]
     peak = float(np.max(np.abs(finite))) if finite.size else 0.0
     if peak > 0 and not SCALE_RANGE[0] <= peak <= SCALE_RANGE[1]:
@@ -219,6 +225,19 @@ def inspect_pixels(image: np.ndarray, encoding: str) -> None:
             "bad_scale", f"largest pixel magnitude {peak:.3g} is outside "
             f"[{SCALE_RANGE[0]:.0e}, {SCALE_RANGE[1]:.0e}]: no detector gives such values, "
             "and their squares underflow or overflow; send counts, electrons or photons")
+    return 0
+
+
+def full_scale(encoding: str) -> float | None:
+    """The top of an integer encoding's range (its converter's full scale), else None."""
+    base = np.dtype(ENCODINGS[encoding])
+    return float(np.iinfo(base).max) if base.kind in "ui" else None
+
+
+def full_scale_message(n_pixels: int, encoding: str) -> str:
+    """Why ``n_pixels`` pixels at the full scale of ``encoding`` make a stamp unusable."""
+    return (f"{n_pixels} pixel(s) at {full_scale(encoding):.0f}, the full scale of {encoding}: "
+            "the converter is saturated and their true values are unknown")
 
 
 # Byte order is judged on blocks of BLOCK_ROWS whole rows spread over the image, about

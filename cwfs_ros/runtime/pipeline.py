@@ -41,6 +41,7 @@ from cwfs_ros.runtime.corner_pool import (
     run_corner_job,
     run_frame_job,
 )
+from cwfs_ros.runtime.images import full_scale, full_scale_message
 from cwfs_ros.runtime.visits import (
     CornerEntry,
     ImageRecord,
@@ -306,13 +307,16 @@ class WavefrontPipeline:
         return ImageRecord(rej.corner, rej.side, rej.stamp_ns, error=f"{rej.reason}: {detail}",
                            reason=rej.reason, received=float(received_s))
 
-    @staticmethod
-    def record(msg: Any, corner: str, side: str, received_s: float
+    def record(self, msg: Any, corner: str, side: str, received_s: float
                ) -> tuple[ImageRecord, Rejection | None]:
-        """Decode an Image message (stateless: the caller may run it outside its lock). An
-        undecodable one still pairs, so that its corner's result names the problem; the
-        Rejection reports it."""
-        rec = image_record_from_msg(msg, corner, side, received_s)
+        """Decode an Image message (no state of the pipeline's: the caller may run it outside
+        its lock). An undecodable one still pairs, so that its corner's result names the
+        problem; the Rejection reports it. A stamp with pixels at its integer type's full
+        scale is ``saturated``; a frame's only make their own star saturated (detection)."""
+        rec = image_record_from_msg(msg, corner, side, received_s, full_scale_ok=True)
+        if not rec.error and rec.full_scale_px and not self.is_frame_pair(rec.image, rec.image):
+            rec.error = f"saturated: {full_scale_message(rec.full_scale_px, rec.encoding)}"
+            rec.reason, rec.image = "saturated", None
         if not rec.error:
             return rec, None
         return rec, Rejection(rec.reason, f"{side} image of {corner}: {rec.error}", corner,
@@ -375,10 +379,21 @@ class WavefrontPipeline:
             return CornerFrameJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image,
                                   self.settings,
                                   sensor_config=str(self._get("sensor_config")),
-                                  selection_config=str(self._get("selection_config")))
+                                  selection_config=str(self._get("selection_config")),
+                                  full_scale=_full_scale_of(pair))
         return CornerJob(c, pair.stamp_ns, pair.intra.image, pair.extra.image, fi, fe,
                          self.settings, self.orientations[(c, "intra")],
-                         self.orientations[(c, "extra")])
+                         self.orientations[(c, "extra")], hint=self._stamp_hint(pair))
+
+    def _stamp_hint(self, pair: PairReady) -> str:
+        """For images of a frame's size taken as stamps (``input_mode: stamps``): what to
+        change if they hold several stars ("" otherwise)."""
+        shape = np.shape(pair.intra.image)
+        if max(*shape, *np.shape(pair.extra.image)) < int(self._get("frame_min_side_px")):
+            return ""
+        return (f"{shape[0]}x{shape[1]} images taken as one-donut stamps because input_mode "
+                f"is {self._get('input_mode')}: frames with several stars need input_mode "
+                f"frames")
 
     # ------------------------------------------------------------------ outcomes
     def _conflict_of(self, corner: str, stamp_ns: int) -> str | None:
@@ -433,3 +448,11 @@ class WavefrontPipeline:
     def expire_visits(self, now: float) -> list[VisitVector]:
         """Visits due at ``now`` (the missing corners invalid)."""
         return [] if self.assembler is None else self.assembler.expire(now)
+
+
+def _full_scale_of(pair: PairReady) -> float | None:
+    """The lower full scale of the pair's integer images (None: floats): a frame's pixels at
+    it are saturated whatever the configured level."""
+    tops = [full_scale(r.encoding) for r in (pair.intra, pair.extra) if r.encoding]
+    tops = [t for t in tops if t is not None]
+    return min(tops) if tops else None

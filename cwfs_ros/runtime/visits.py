@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from cwfs_ros.layout import CLOCK_RESET_S, CORNERS, N_ZK, NOLL, SIDES
-from cwfs_ros.runtime.images import decode_checked
+from cwfs_ros.runtime.images import decode_image, inspect_pixels
 
 __all__ = [
     "CornerEntry",
@@ -108,6 +108,10 @@ class ImageRecord:
         received: monotonic receive time in seconds.
         digest: identity of the picture (see the module docstring: equal digests, same
             picture); empty when not computed, then the decoded pixels decide.
+        encoding: the message's encoding.
+        full_scale_px: integer pixels at the top of their type's range, when the decoder was
+            told to count rather than refuse them (:func:`image_record_from_msg`): in a
+            frame they make only their own star saturated.
     """
 
     corner: str
@@ -119,6 +123,8 @@ class ImageRecord:
     frame_id: str = ""
     received: float = 0.0
     digest: bytes = b""
+    encoding: str = ""
+    full_scale_px: int = 0
 
     def identity(self) -> bytes:
         """:attr:`digest`, or one of the decoded pixels (or the error) when it is unset."""
@@ -147,7 +153,8 @@ def message_digest(msg: Any) -> bytes:
     return h.digest()
 
 
-def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> ImageRecord:
+def image_record_from_msg(msg: Any, corner: str, side: str, received: float, *,
+                          full_scale_ok: bool = False) -> ImageRecord:
     """Decode a ``sensor_msgs/Image``-shaped message into an :class:`ImageRecord` (never raises).
 
     ``msg`` is anything with the Image fields (``header.stamp``, ``header.frame_id``,
@@ -155,15 +162,20 @@ def image_record_from_msg(msg: Any, corner: str, side: str, received: float) -> 
     or a rosbags-deserialised one. ``received`` is the receive time in seconds (monotonic for
     the live node, the bag's receive stamp for a replay). A message that cannot be decoded gives
     a record with ``image=None`` and ``error`` naming the problem; it still takes part in
-    pairing so that the corner's result reports it.
+    pairing so that the corner's result reports it. Integer pixels at full scale refuse the
+    image ``saturated`` (a stamp), or with ``full_scale_ok`` are counted in
+    :attr:`ImageRecord.full_scale_px` (a frame: its detection judges each star).
     """
     rec = ImageRecord(corner, side, stamp_to_ns(msg.header.stamp),
                       frame_id=str(msg.header.frame_id), received=float(received))
     try:
         rec.digest = message_digest(msg)
-        rec.image = decode_checked(msg.data, height=msg.height, width=msg.width,
-                                 encoding=msg.encoding, step=msg.step,
-                                 is_bigendian=bool(msg.is_bigendian))
+        rec.encoding = str(msg.encoding)
+        image = decode_image(msg.data, height=msg.height, width=msg.width,
+                             encoding=msg.encoding, step=msg.step,
+                             is_bigendian=bool(msg.is_bigendian))
+        rec.full_scale_px = inspect_pixels(image, rec.encoding, full_scale_ok=full_scale_ok)
+        rec.image = image
     except ValueError as exc:  # ImageDecodeError is a ValueError
         rec.error, rec.reason = str(exc), str(getattr(exc, "reason", "bad_data"))
     except Exception as exc:  # noqa: BLE001 - a message must never crash the caller
@@ -186,7 +198,17 @@ class PairReady:
 
     @property
     def error(self) -> str | None:
-        errs = [f"{r.side} image {r.error}" for r in (self.intra, self.extra) if r.error]
+        """What is wrong with the pair's images, each named by side: ``"intra image:
+        <explanation>"``, with the image's own reason tag where it is not the pair's
+        :attr:`reason` (which the outcome's status leads with)."""
+        lead = self.intra.reason or self.extra.reason  # the pair's reason (not via .reason)
+        errs = []
+        for r in (self.intra, self.extra):
+            if r.error:
+                text = r.error
+                if r.reason and r.reason == lead and text.startswith(r.reason + ": "):
+                    text = text[len(r.reason) + 2:]
+                errs.append(f"{r.side} image: {text}")
         return "; ".join(errs) if errs else None
 
     @property
