@@ -136,6 +136,28 @@ def test_an_impostor_under_the_owners_name_is_reported(ofc_graph, ros_domain):
         imp.close()
 
 
+def test_a_second_node_under_the_same_name_is_reported_even_without_publishers(
+        ofc_graph, ros_domain):
+    """Another process's node named ofc_node that publishes nothing: its parameter and
+    lifecycle services collide with the real node's, so /diagnostics warns."""
+    ofc, _, _, diag = ofc_graph
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    twin = rclpy.create_node("ofc_node", context=ctx)
+    try:
+        def reported() -> bool:
+            for st in _statuses(diag, "ofc_node")[-5:]:
+                foreign = _values(st).get("foreign_publishers", "")
+                if foreign.startswith("node name: 2 nodes named /ofc_node in the graph"):
+                    return st.level >= DiagnosticStatus.WARN
+            return False
+
+        wait_for(reported, 15, "the second node named ofc_node reported")
+    finally:
+        twin.destroy_node()
+        ctx.try_shutdown()
+
+
 def test_camera_sim_applies_corrections_only_from_the_one_publisher(ros_domain):
     sim = pytest.importorskip("cwfs_ros.sim")  # noqa: F841
     from test_camera_sim import correction, make_system, visit

@@ -392,10 +392,22 @@ def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
     publishers on /diagnostics. A node name proves nothing (any process may call its node
     ``ofc_node``): the endpoints named like this node are counted against the publishers it
     created on the topic, and any beyond them are reported too, with their endpoint gids.
-    ``topics`` are names as the node created them (resolved here).
+    ``topics`` are names as the node created them (resolved here). Another node of the same
+    name and namespace anywhere in the graph is named first: its parameter services and
+    lifecycle services collide with this node's, so ``param set`` or ``lifecycle set`` may
+    reach either.
     """
     me = (node.get_namespace().rstrip("/"), node.get_name())
     out = []
+    try:
+        same = sum(1 for n, ns in node.get_node_names_and_namespaces()
+                   if (ns.rstrip("/"), n) == me)
+    except Exception:  # noqa: BLE001 - a graph query must not break diagnostics
+        same = 1
+    if same > 1:
+        out.append(f"node name: {same} nodes named {me[0]}/{me[1]} in the graph (another "
+                   f"process under this node's name: parameter and lifecycle requests may "
+                   f"reach either)")
     for t in topics:
         try:
             name = node.resolve_topic_name(t)
@@ -410,7 +422,7 @@ def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
             out.append(f"{name}: {len(named_me)} endpoints named {me[0]}/{me[1]} for this "
                        f"node's {own} (another process under its name: "
                        f"{', '.join(endpoint_label(i) for i in named_me)})")
-    return sorted(out)
+    return out[:1] + sorted(out[1:]) if same > 1 else sorted(out)
 
 
 class PublisherTrust:
