@@ -48,6 +48,25 @@ def test_validate_settings():
             validate_settings(bad)
 
 
+def test_library_default_solver_is_the_nodes():
+    """A library user who takes the defaults (EstimatorSettings(), estimate_corner_frames,
+    estimate_wavefront) gets the solver wavefront_node runs with, the one the README's
+    figures are for."""
+    import inspect
+
+    from cwfs_ros.config import config_dir, load_yaml
+    from cwfs_ros.frames.selection import estimate_corner_frames
+    from cwfs_ros.wfs.estimator import estimate_wavefront
+
+    params = load_yaml(config_dir() / "params.yaml")
+    node = params["wavefront_node"]["ros__parameters"]["solver"]
+    assert node == "lsq"
+    assert EstimatorSettings().solver == node
+    assert inspect.signature(estimate_wavefront).parameters["solver"].default == node
+    frames_default = inspect.signature(estimate_corner_frames).parameters["settings"].default
+    assert frames_default.solver == node
+
+
 def test_orientation_settings_undo_a_rotated_or_flipped_camera():
     """A stamp delivered rotated / flipped, declared as such, gives the same wavefront."""
     sim = pytest.importorskip("cwfs_ros.sim")

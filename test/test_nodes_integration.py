@@ -258,8 +258,7 @@ def test_node_output_equals_a_direct_core_call(visit):
     job = CornerJob("R44", S1, images[("R44", "intra")], images[("R44", "extra")],
                     f["intra"], f["extra"], EstimatorSettings())
     out = run_corner_job(job)
-    # The same solver on both sides: EstimatorSettings() keeps its own default while
-    # estimate_wavefront's is lsq.
+    # The same solver on both sides, named: the comparison holds whatever the defaults.
     ref = estimate_wavefront(images[("R44", "intra")], images[("R44", "extra")],
                              field_intra_deg=f["intra"], field_extra_deg=f["extra"],
                              solver=EstimatorSettings().solver)

@@ -469,6 +469,10 @@ def test_ofc_node_refuses_a_vector_whose_stamp_no_correction_could_carry(ros_con
         ofc._on_vector(m)
         assert ofc.refused.counts["bad_stamp"] == 1 and "nanosec" in ofc.last_status
         assert ofc.solver.n_steps == 0 and not sent
+        m.header.stamp.sec, m.header.stamp.nanosec = -5, 0  # before 1970: no visit's time
+        ofc._on_vector(m)
+        assert ofc.refused.counts["bad_stamp"] == 2 and "sec -5 is before 1970" in ofc.last_status
+        assert ofc.solver.n_steps == 0 and not sent
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(T, SEC)
         ofc._on_vector(m)  # the same vector, properly stamped, is applied
         assert ofc.solver.n_steps == 1 and len(sent) == 1 and sent[0].valid

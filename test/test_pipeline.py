@@ -108,6 +108,10 @@ def test_refusals_before_decoding():
     msg.header.stamp.nanosec = 1_000_000_000
     bad = pipe.refusal(msg, "R00", "intra", T0)
     assert bad is not None and bad.reason == "bad_stamp"
+    msg = image(160)
+    msg.header.stamp.sec = -5
+    bad = pipe.refusal(msg, "R00", "intra", T0)
+    assert bad is not None and bad.reason == "bad_stamp" and "sec -5 is before 1970" in bad.message
     p["max_future_s"] = 0.0
     assert pipe.refusal(image(160, T0 + 10**12), "R00", "intra", T0) is None
 
@@ -135,6 +139,30 @@ def test_a_conflict_while_waiting_closes_the_corner():
     assert unpaired is not None and unpaired.corner == "R40" and vec is None
     out = pipe.unpaired_outcome(unpaired)
     assert not out.valid and out.reason == "conflicting_images"
+
+
+def test_an_unpaired_corner_names_its_partners_refused_stamp():
+    """The extra image's stamp is refused (it names no time): its intra partner times out
+    ``unpaired``, and the corner's status says what became of the extra image; once an
+    extra image of that corner pairs again, the old refusal is no longer named."""
+    pipe = WavefrontPipeline(params(visit_timeout_s=2.0).__getitem__, CORNERS)
+    bad = image(160)
+    bad.header.stamp.nanosec = 1_500_000_000
+    rej = pipe.refusal(bad, "R04", "extra", T0)
+    assert rej is not None and rej.reason == "bad_stamp"
+    assert pipe.refused_record(rej, 0.0) is None  # its stamp names no visit: not paired
+    rec, _ = pipe.record(image(160), "R04", "intra", 0.0)
+    pipe.add_record(rec)
+    (unpaired,) = pipe.expire_pairs(10.0)
+    out = pipe.unpaired_outcome(unpaired)
+    assert not out.valid and out.reason == "unpaired"
+    assert "the latest extra image of R04 was refused: bad_stamp" in out.status, out.status
+    assert "nanosec 1500000000" in out.status, out.status
+    pair_of(pipe, "R04", 160, T0 + 30 * 10**9, now_s=20.0)
+    rec, _ = pipe.record(image(160, T0 + 60 * 10**9), "R04", "intra", 40.0)
+    pipe.add_record(rec)
+    (unpaired,) = pipe.expire_pairs(50.0)
+    assert "refused" not in pipe.unpaired_outcome(unpaired).status
 
 
 def test_assembly_expiry_and_closing_the_missing_corners():
@@ -217,12 +245,14 @@ def test_full_scale_pixels_refuse_a_stamp_but_pass_a_frame_to_its_detection():
 
 def test_frames_taken_as_stamps_say_which_parameter_to_change():
     """A camera that sends frames to a node told ``input_mode: stamps``: the estimator
-    refuses the image, and the corner's status names the parameter."""
+    refuses the image, and the corner's reason is the mode (``frame_as_stamp``), its status
+    naming the parameter and then the estimator's refusal."""
     p = params(input_mode="stamps")
     pipe = WavefrontPipeline(p.__getitem__, CORNERS)
     side = p["frame_min_side_px"]
     out = run_job(pipe.job_for(pair_of(pipe, "R00", side, value=50.0)))
-    assert not out.valid
+    assert not out.valid and out.reason == "frame_as_stamp", out.status
+    assert "(as a stamp: flat_or_empty: " in out.status, out.status
     assert (f"{side}x{side} images taken as one-donut stamps because input_mode is stamps: "
             "frames with several stars need input_mode frames") in out.status, out.status
     small = pipe.job_for(pair_of(pipe, "R04", 160))

@@ -8,6 +8,7 @@ would be) on the test's domain, named like the real producers.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -139,8 +140,17 @@ def test_an_impostor_under_the_owners_name_is_reported(ofc_graph, ros_domain):
 def test_a_second_node_under_the_same_name_is_reported_even_without_publishers(
         ofc_graph, ros_domain):
     """Another process's node named ofc_node that publishes nothing: its parameter and
-    lifecycle services collide with the real node's, so /diagnostics warns."""
+    lifecycle services collide with the real node's, so /diagnostics warns, the node's log
+    says so once, and each status names its process."""
+    from rcl_interfaces.msg import Log
+    from rclpy.executors import SingleThreadedExecutor
+
     ofc, _, _, diag = ofc_graph
+    logs: list[Log] = []
+    listener = rclpy.create_node("log_listener", context=ofc.context)
+    listener.create_subscription(Log, "/rosout", logs.append, 100)
+    ex = SingleThreadedExecutor(context=ofc.context)
+    ex.add_node(listener)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain)
     twin = rclpy.create_node("ofc_node", context=ctx)
@@ -153,7 +163,20 @@ def test_a_second_node_under_the_same_name_is_reported_even_without_publishers(
             return False
 
         wait_for(reported, 15, "the second node named ofc_node reported")
+        said = [m for m in logs if m.name == "ofc_node" and m.level == Log.WARN
+                and "node name: 2 nodes named /ofc_node" in m.msg]
+        deadline = time.monotonic() + 10
+        while not said and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.2)
+            said = [m for m in logs if m.name == "ofc_node" and m.level == Log.WARN
+                    and "node name: 2 nodes named /ofc_node" in m.msg]
+        assert len(said) == 1, [m.msg for m in logs if m.name == "ofc_node"]
+        assert "another publisher on this node's outputs or under its name" in said[0].msg
+        process = _values(_statuses(diag, "ofc_node")[-1]).get("process", "")
+        assert process.endswith(f":{os.getpid()}"), process
     finally:
+        ex.shutdown()
+        listener.destroy_node()
         twin.destroy_node()
         ctx.try_shutdown()
 

@@ -85,6 +85,8 @@ def test_param_get_prints_the_value_as_ros2_does(graph, capsys):
     assert (code, out) == (0, f"{want['band']}\n")
     code, out, err = _run(capsys, "param", "get", "ofc_node", "no_such_param")
     assert code == 1 and "not set" in err and out == ""
+    code, out, err = _run(capsys, "param", "get", "ofc_node", "dryrun")
+    assert code == 1 and "did you mean 'dry_run'?" in err, err
 
 
 def test_param_list_names_every_declared_parameter(graph, capsys):
@@ -113,6 +115,16 @@ def test_param_set_changes_the_running_node_or_says_why_not(graph, capsys):
     assert code == 0 and ofc.get_parameter("kp").value == 0.2
     code, out, _ = _run(capsys, "param", "set", "ofc_node", "kp", "3.0e-1")
     assert code == 0 and ofc.get_parameter("kp").value == 0.3
+    # A negative value with an exponent is a value, not an option, with or without "--".
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "rotator_angle_deg", "-1.5e1")
+    assert code == 0, err
+    assert ofc.get_parameter("rotator_angle_deg").value == -15.0
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "rotator_angle_deg", "--",
+                          "-2.5e1")
+    assert code == 0 and ofc.get_parameter("rotator_angle_deg").value == -25.0, err
+    # A misspelt name: named, with the nearest declared one.
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "dryrun", "true")
+    assert code == 1 and "declares no parameter 'dryrun'; did you mean 'dry_run'?" in err, err
 
 
 def test_param_dump_is_a_parameter_file_of_the_live_values(graph, capsys, tmp_path):

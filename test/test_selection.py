@@ -479,9 +479,14 @@ def test_frames_that_cannot_be_placed_on_their_half_chips_are_refused():
     res = run_corner_frame_job(CornerFrameJob("R00", 5, np.ascontiguousarray(whole.T), whole))
     assert not res.valid and res.reason == "frame_size", res.status
     assert "intra frame is 2000x4000" in res.status and "4000x2000 R00 SW1" in res.status
-    res = run_corner_frame_job(CornerFrameJob("R00", 5, whole[:1000], whole))
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, whole[:3000], whole))
     assert not res.valid and res.reason == "frame_size", res.status
-    assert "intra frame is 1000x2000 and the extra 4000x2000" in res.status, res.status
+    assert "intra frame is 3000x2000 and the extra 4000x2000" in res.status, res.status
+    # A window transposed: smaller than the half-chip, but crosswise to it.
+    window = np.ascontiguousarray(whole[:2000, :1000])
+    res = run_corner_frame_job(CornerFrameJob("R00", 5, window, np.ascontiguousarray(window.T)))
+    assert not res.valid and res.reason == "frame_size", res.status
+    assert "extra frame is 1000x2000" in res.status and "long side lies across" in res.status
 
 
 def test_frame_job_never_raises():

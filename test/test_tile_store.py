@@ -122,6 +122,9 @@ def test_an_unwritable_store_costs_the_build_only(tmp_path):
         assert sum(made.values()) == 5 and sum(loaded.values()) == 0
         assert s.writes == 0 and s.write_errors
         assert "5 failed writes" in s.report() and "cannot write" in s.report(), s.report()
+        # Its reads are misses, not rejected tiles, and the unusable root is said once.
+        assert s.rejected == 0 and "0 stored tiles rejected" in s.report(), s.report()
+        assert sum("cannot write or read tiles" in p for p in s.problems) == 1, s.problems
     finally:
         mp.use_field_tile_store(None)
         reset_caches()
@@ -131,15 +134,65 @@ def test_the_tiles_of_other_versions_go_after_a_month_unused(tmp_path):
     import os
     import time
 
-    old, recent = tmp_path / "0123456789abcdef", tmp_path / "fedcba9876543210"
-    for d in (old, recent):
+    month_ago = time.time() - 31 * 86400
+
+    def salt_dir(name: str, age_s: float | None = None):
+        d = tmp_path / name
         (d / "map").mkdir(parents=True)
         (d / "map" / "t.npz").write_bytes(b"x")
-    month_ago = time.time() - 31 * 86400
-    os.utime(old, (month_ago, month_ago))
+        (d / ".last_used").touch()
+        if age_s is not None:
+            for p in (d / ".last_used", d / "map" / "t.npz", d / "map", d):
+                os.utime(p, (age_s, age_s))
+        return d
+
+    old, recent = salt_dir("0123456789abcdef", month_ago), salt_dir("fedcba9876543210")
+    # Old but written to today (a long-lived process of that version): kept.
+    busy = salt_dir("00000000000000aa", month_ago)
+    (busy / "map" / "new.npz").write_bytes(b"y")
+    # Not the store's: a salt-like name without its mark, one with a foreign file, and
+    # another project's directory, all a month old: never removed.
+    unmarked = salt_dir("00000000000000bb", month_ago)
+    (unmarked / ".last_used").unlink()
+    foreign = salt_dir("00000000000000cc", month_ago)
+    (foreign / "notes.txt").write_text("mine")
+    os.utime(foreign / "notes.txt", (month_ago, month_ago))
+    victim = tmp_path / "old_project"
+    (victim / "data").mkdir(parents=True)
+    (victim / "data" / "today.txt").write_text("kept")
+    for p in (victim / "data", victim):
+        os.utime(p, (month_ago, month_ago))
     try:
         s = mp.use_field_tile_store(tmp_path)
         assert not old.exists() and recent.exists() and s.dir.is_dir()
         assert (s.dir / ".last_used").exists()
+        assert busy.exists() and (unmarked / "map" / "t.npz").exists()
+        assert (foreign / "notes.txt").exists() and (victim / "data" / "today.txt").exists()
     finally:
         mp.use_field_tile_store(None)
+
+
+def test_a_fifo_or_a_huge_file_in_the_store_is_refused_without_blocking(store):
+    import os
+    import threading
+
+    s = mp.use_field_tile_store(store)
+    _warm_and_read()
+    pupil, other = sorted((s.dir / "pupil").glob("*.npz"))
+    pupil.unlink()
+    os.mkfifo(pupil)  # a read would wait for a writer for ever
+    with open(other, "r+b") as f:
+        f.truncate(300 * 2**20)  # sparse: bigger than any tile
+    s = mp.use_field_tile_store(store)
+    done = threading.Event()
+    result = {}
+
+    def warm():
+        result["loaded"] = _warm_and_read()[1]
+        done.set()
+
+    threading.Thread(target=warm, daemon=True).start()
+    assert done.wait(120), "the warm-up blocked on a FIFO in the tile store"
+    assert result["loaded"] == {"map": 2, "pupil": 0, "design": 1}
+    said = " | ".join(s.problems)
+    assert s.rejected == 2 and "not a regular file" in said and "more than a tile" in said, said

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -110,10 +111,28 @@ def _unrecognized(args: argparse.Namespace, extra: Sequence[str]) -> str:
     return text
 
 
+# A negative number as YAML writes it: argparse takes all but plain -1 and -0.5 for options.
+_NEGATIVE = re.compile(r"-(\d[\d_]*\.?\d*|\.\d+)([eE][-+]?\d+)?|-\.(inf|Inf|INF)")
+
+
+def _negative_values(argv: Sequence[str]) -> list[str]:
+    """``param set NODE NAME -1e-3`` as argparse must read it: a negative VALUE (a number
+    with an exponent, or -.inf) goes after ``--``, so that it is not taken for an option."""
+    argv = list(argv)
+    if argv[:2] != ["param", "set"] or "--" in argv:
+        return argv
+    neg = [i for i, a in enumerate(argv) if i >= 2 and _NEGATIVE.fullmatch(a)
+           and argv[i - 1] != "--timeout"]
+    if not neg:
+        return argv
+    return [a for i, a in enumerate(argv) if i not in neg] + ["--"] + [argv[i] for i in neg]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (argparse exits are returned too)."""
     limit_blas_threads()
     parser = build_parser()
+    argv = _negative_values(sys.argv[1:] if argv is None else argv)
     try:
         args, extra = parser.parse_known_args(argv)
     except SystemExit as exc:  # --help, --version, usage errors (already printed)

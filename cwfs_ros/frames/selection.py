@@ -603,12 +603,14 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
     orientation) and say how a smaller one is placed ("" when both are whole).
 
     A frame may be a window of its half-chip, read out centred on the reference pixel (the
-    simulator's frames are); a larger one, or a corner whose two halves differ in size where
-    the sensor file says they are alike, cannot be placed: one was transposed, cut or
-    belongs to another sensor file.
+    simulator's frames are), in the half-chip's orientation: its long side, if any, along
+    the half-chip's. A larger one, one whose long side lies across the half-chip's, or a
+    corner whose two halves differ in size where the sensor file says they are alike,
+    cannot be placed: one was transposed, cut or belongs to another sensor file.
 
     Raises:
-        FrameSizeError: a frame larger than its half-chip, or halves of different sizes.
+        FrameSizeError: a frame larger than its half-chip or crosswise to it, or halves of
+            different sizes.
     """
     shapes = {}
     for name, frame, half in (("intra", intra_frame, intra), ("extra", extra_frame, extra)):
@@ -622,6 +624,13 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
                 f"larger than the {half.shape_px[0]}x{half.shape_px[1]} {half.corner} "
                 f"{half.sensor} half-chip of the sensor file: a transposed or turned "
                 f"readout, or the wrong sensor file")
+        if _crosswise(shapes[name], half.shape_px):
+            raise FrameSizeError(
+                f"the {name} frame is {rows}x{cols} (rows x cols, focal-plane orientation): "
+                f"its long side lies across that of the {half.shape_px[0]}x"
+                f"{half.shape_px[1]} {half.corner} {half.sensor} half-chip. A window keeps "
+                f"its half-chip's orientation, so this one is a transposed or turned "
+                f"readout (its stars' field positions would be wrong)")
     if intra.shape_px == extra.shape_px and shapes["intra"] != shapes["extra"]:
         raise FrameSizeError(
             f"the intra frame is {shapes['intra'][0]}x{shapes['intra'][1]} and the extra "
@@ -635,6 +644,12 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
     return (f"{shapes['intra'][0]}x{shapes['intra'][1]} windows of the "
             f"{intra.shape_px[0]}x{intra.shape_px[1]} half-chips, taken as centred on their "
             f"reference pixels")
+
+
+def _crosswise(shape_px: tuple[int, int], half_px: tuple[int, int]) -> bool:
+    """Whether a window's long side lies across its half-chip's long side (rows x cols)."""
+    (rows, cols), (half_rows, half_cols) = shape_px, half_px
+    return (half_rows > half_cols and rows < cols) or (half_rows < half_cols and rows > cols)
 
 
 def _cap_note(det_in: list[DetectedDonut], det_ex: list[DetectedDonut],

@@ -1076,7 +1076,8 @@ class OFCSolver:
         if stamp_ns is None:
             return None
         if stamp_ns <= 0:
-            return Problem("no_stamp", "the visit's header.stamp is unset (0)")
+            return Problem("no_stamp", "the visit's header.stamp is unset (0)" if stamp_ns == 0
+                           else f"the visit's header.stamp is {stamp_ns} ns, before 1970")
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
             what = "again" if stamp_ns == self.last_stamp_ns else "older than the last one"
             hint = ""

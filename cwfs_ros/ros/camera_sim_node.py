@@ -67,8 +67,8 @@ from cwfs_ros.ros.common import (
     bundled_declarer,
     describe,
     diagnostic_status,
-    foreign_publishers,
     ns_to_stamp,
+    refresh_foreign,
     result,
     stamp_to_ns,
 )
@@ -502,7 +502,7 @@ class CameraSimNode(NodeBasics, Node):
                       ("last_status", self.last_status)]
             failed = stats["visits_failed"] > 0 and "failed" in self.last_status
         values += self.ignored.key_values()
-        self.foreign = foreign_publishers(self, [*(image_topic(c, s)
+        self.foreign = refresh_foreign(self, [*(image_topic(c, s)
                                                    for c in self.corners for s in SIDES),
                                                  TRUTH_TOPIC])
         values.append(("foreign_publishers", "; ".join(self.foreign) or "none"))

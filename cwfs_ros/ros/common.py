@@ -23,6 +23,8 @@ QoS, chosen on purpose
 
 from __future__ import annotations
 
+import os
+import socket
 import threading
 import time
 from collections import Counter
@@ -58,6 +60,7 @@ __all__ = [
     "SequenceGaps",
     "bundled_declarer",
     "foreign_publishers",
+    "refresh_foreign",
     "string_param_problem",
     "describe",
     "diagnostic_status",
@@ -383,6 +386,22 @@ def endpoint_label(info: Any) -> str:
     return f"{ns}/{info.node_name} (gid {gid})"
 
 
+def refresh_foreign(node: Any, topics: Sequence[str]) -> list[str]:
+    """:func:`foreign_publishers` of ``node``'s ``topics``, logged when the list changes
+    (a warning naming the new ones; a note when none are left), against ``node.foreign``."""
+    new = foreign_publishers(node, topics)
+    old = list(getattr(node, "foreign", []) or [])
+    if new != old:
+        added = [f for f in new if f not in old]
+        if added:
+            node.get_logger().warning(
+                "another publisher on this node's outputs or under its name (consumers "
+                "cannot tell its messages from this node's): " + "; ".join(added))
+        elif not new:
+            node.get_logger().info("no other publisher on this node's outputs any more")
+    return new
+
+
 def foreign_publishers(node: Any, topics: Sequence[str]) -> list[str]:
     """``"<topic>: <namespace>/<node> (gid ...)"`` for every publisher endpoint on ``topics``
     (this node's own outputs) that is not one of ``node``'s own publishers.
@@ -685,8 +704,12 @@ class SequenceGaps:
 def diagnostic_status(name: str, level: bytes, message: str,
                       values: Sequence[tuple[str, object]], hardware_id: str = "") -> \
         DiagnosticStatus:
+    """A status whose last value is ``process`` (``host:pid``): two nodes run under one name
+    publish statuses of one name, and this tells them apart."""
     return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
-                            values=[KeyValue(key=str(k), value=str(v)) for k, v in values])
+                            values=[KeyValue(key=str(k), value=str(v)) for k, v in values]
+                            + [KeyValue(key="process",
+                                        value=f"{socket.gethostname()}:{os.getpid()}")])
 
 
 def diagnostics_array(stamp: Time, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:

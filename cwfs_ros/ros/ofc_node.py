@@ -92,7 +92,7 @@ from cwfs_ros.ros.common import (
     bundled_declarer,
     describe,
     diagnostic_status,
-    foreign_publishers,
+    refresh_foreign,
     result,
     stamp_to_ns,
     string_param_problem,
@@ -468,7 +468,7 @@ class OfcNode(ManagedNode):
                 self.guard.integrated(*visit)
 
     def _guard_values(self) -> list[tuple[str, str]]:
-        self.foreign = foreign_publishers(self, [CORRECTION_TOPIC])
+        self.foreign = refresh_foreign(self, [CORRECTION_TOPIC])
         n_pub = len(self.get_publishers_info_by_topic(self.sub.topic_name))
         values = [(f"guard.{k}", str(v)) for k, v in sorted(self.guard_counts.counts.items())]
         values += [("queue_dropped", str(self.queue_gaps.dropped)

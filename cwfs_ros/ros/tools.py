@@ -45,7 +45,7 @@ import yaml
 
 from cwfs_ros.argtypes import nonnegative_float, positive_float, positive_int
 from cwfs_ros.errors import ToolError
-from cwfs_ros.ros.params import parse_parameter_text
+from cwfs_ros.ros.params import close_match, parse_parameter_text
 
 __all__ = [
     "EXIT_NOT_FOUND",
@@ -460,9 +460,11 @@ def param_get(args: argparse.Namespace) -> int:
     with graph_node() as (node, executor):
         full = _wait_for_node(node, executor, args.node, args.timeout)
         values = _get_values(node, executor, full, [args.name], args.timeout)
+        names = [] if values and values[0].type in _LABELS else _list_names(
+            node, executor, full, args.timeout)
     if not values or values[0].type not in _LABELS:
         raise ToolError(f"{full}: parameter {args.name} not set (the node declares no such "
-                        "parameter)")
+                        f"parameter{close_match(args.name, names)})")
     value = plain_value(values[0])
     print(value if args.hide_type else f"{_LABELS[values[0].type][0]} {value}")
     return 0
@@ -492,7 +494,12 @@ def param_set(args: argparse.Namespace) -> int:
             name=args.name, value=parameter_value(args.value))])
         resp = _call(node, executor, f"{full}/set_parameters", SetParameters, request,
                      args.timeout)
-    result = resp.results[0]
+        result = resp.results[0]
+        if not result.successful and "undeclared" in result.reason:
+            # rclpy's reason names no parameter: name it, and the nearest declared one.
+            names = _list_names(node, executor, full, args.timeout)
+            raise ToolError(f"Set parameter failed: {full} declares no parameter "
+                            f"{args.name!r}{close_match(args.name, names)}")
     if not result.successful:
         raise ToolError("Set parameter failed" + (f": {result.reason}" if result.reason else ""))
     print("Set parameter successful")

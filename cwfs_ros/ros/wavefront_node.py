@@ -71,8 +71,8 @@ from cwfs_ros.ros.common import (
     describe,
     diagnostic_status,
     endpoint_label,
-    foreign_publishers,
     image_qos,
+    refresh_foreign,
     result,
     stamp_to_ns,
     string_param_problem,
@@ -835,7 +835,7 @@ class WavefrontNode(ManagedNode):
             pending_mb = self.pairing.pending_bytes() / 1e6
             promise, promise_s = self.workload.promise(
                 pool.affinity, pool.queued(), float(self._param("visit_timeout_s")))
-        self.foreign = foreign_publishers(self, self._owned_topics())
+        self.foreign = refresh_foreign(self, self._owned_topics())
         shared = {k: v for k, v in self._refresh_image_publishers().items() if len(v) > 1}
         level, state, message = self._health(warm, lifecycle, incomplete, promise, shared)
         values = [("state", state), ("lifecycle", lifecycle),

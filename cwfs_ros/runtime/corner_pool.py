@@ -65,7 +65,7 @@ class CornerJob:
     settings: EstimatorSettings
     orient_intra: Orientation = Orientation()
     orient_extra: Orientation = Orientation()
-    hint: str = ""  # added to the status of an image the estimator refuses
+    hint: str = ""  # a frame-sized image in stamps mode: what to change if it is refused
 
 
 @dataclass(frozen=True)
@@ -179,7 +179,8 @@ def _estimate_corner(job: CornerJob) -> CornerOutcome:
             msg += (f" (received stamps {_shapes(job)} px, padded by {s.pad_px} px on each "
                     "side)")
         if job.hint and not isinstance(exc, ConfigError):
-            msg += f" ({job.hint})"
+            # The cause is the mode, not the image: said first, the estimator's refusal after.
+            return fail("frame_as_stamp", f"{job.hint} (as a stamp: {reason}: {msg})")
         return fail(str(reason), msg)
     except Exception as exc:  # noqa: BLE001 - a worker must report, not die
         return fail("internal_error", f"{type(exc).__name__}: {exc}")

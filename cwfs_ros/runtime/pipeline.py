@@ -85,11 +85,14 @@ def stamp_problem(stamp: Any) -> Problem | None:
     builtin_interfaces/Time requires ``nanosec`` below 1e9, but nothing enforces it: such a
     stamp names a time that does not round-trip (the excess carries into ``sec``, which can
     overflow its int32), so an output stamped with it would be refused at publication or go
-    out with another visit's stamp.
+    out with another visit's stamp. A negative ``sec`` is before 1970: no exposure's time.
     """
     if int(stamp.nanosec) >= 1_000_000_000:
         return Problem("bad_stamp", f"nanosec {int(stamp.nanosec)} is not below 1e9 "
                        "(builtin_interfaces/Time)")
+    if int(stamp.sec) < 0:
+        return Problem("bad_stamp", f"sec {int(stamp.sec)} is before 1970: no exposure's "
+                       "time (a clock or a driver that sets its stamps wrongly)")
     return None
 
 
@@ -193,6 +196,9 @@ class WavefrontPipeline:
         # (corner, visit stamp) of visits whose corner had conflicting images after pairing:
         # their estimate is made invalid (bounded, oldest forgotten first).
         self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
+        # (corner, side) -> the latest refusal of an image's stamp there, until that side
+        # pairs again: named by its partner's unpaired outcome.
+        self._door_refused: dict[tuple[str, str], Rejection] = {}
 
     def _orientation(self, corner: str, side: str) -> Orientation:
         return Orientation(int(self._get(f"sensors.{corner}.{side}.rot90")),
@@ -241,6 +247,16 @@ class WavefrontPipeline:
 
     # ------------------------------------------------------------------ images
     def refusal(self, msg: Any, corner: str, side: str, clock_ns: int) -> Rejection | None:
+        """The refusal of an Image message before decoding, or None (:meth:`_door_refusal`).
+        A refusal of the stamp is kept until an image of that side pairs, so that its
+        partner, dropped ``unpaired``, says what became of it (:meth:`unpaired_outcome`)."""
+        rej = self._door_refusal(msg, corner, side, clock_ns)
+        if rej is not None and rej.reason not in PAIRED_REFUSALS:
+            self._door_refused[(corner, side)] = rej
+        return rej
+
+    def _door_refusal(self, msg: Any, corner: str, side: str, clock_ns: int
+                      ) -> Rejection | None:
         """The refusal of an Image message before decoding, or None: a stamp no output could
         carry (``bad_stamp``), a stamp of 0 (``no_stamp``: a camera that never set it; every
         such image would claim one visit), one more than ``max_future_s`` ahead of
@@ -325,6 +341,7 @@ class WavefrontPipeline:
     def add_record(self, rec: ImageRecord) -> ImageStep:
         """Pair a record; then drop the oldest waiting images while they hold more than
         ``max_pending_mb``."""
+        self._door_refused.pop((rec.corner, rec.side), None)  # that side's latest image came
         pair, rej = self.pairing.add(rec)
         limit = float(self._get("max_pending_mb")) * 1e6
         dropped = []
@@ -415,9 +432,15 @@ class WavefrontPipeline:
                                f["intra"], f["extra"], out.solver), True
 
     def unpaired_outcome(self, r: Rejection) -> CornerOutcome:
-        """The invalid outcome of a half visit dropped unpaired (its corner says why)."""
+        """The invalid outcome of a half visit dropped unpaired (its corner says why, and what
+        became of the other side's latest image if its stamp was refused)."""
         f = self.fields[r.corner]
-        return invalid_outcome(r.corner, r.stamp_ns, r.reason, r.message, f["intra"],
+        other = "extra" if r.side == "intra" else "intra"
+        refused = self._door_refused.get((r.corner, other))
+        message = r.message if refused is None else (
+            f"{r.message}; the latest {other} image of {r.corner} was refused: "
+            f"{refused.reason}: {refused.message}")
+        return invalid_outcome(r.corner, r.stamp_ns, r.reason, message, f["intra"],
                                f["extra"], self.settings.solver)
 
     def assemble(self, entry: CornerEntry | CornerOutcome, now: float

@@ -35,7 +35,7 @@ class EstimatorSettings:
 
     instrument: str = "lsst"
     band: str = "r"
-    solver: str = "exp"
+    solver: str = "lsq"  # as estimate_wavefront and wavefront_node: best under photon noise
     outer_iterations: int = 0
     pad_px: int = 0
     seeing_fwhm_arcsec: float = 0.0

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
+import stat
 import tempfile
 from pathlib import Path
 
@@ -50,6 +52,10 @@ USED_MARK = ".last_used"
 # The arrays a stored file holds besides the tile's: the digest of its key, and of the rest.
 KEY_FIELD = "__tile_key__"
 SUM_FIELD = "__tile_sum__"
+# The salt directories' names (:attr:`TileStore.dir`): only these are ever pruned.
+SALT_DIR_NAME = re.compile(r"[0-9a-f]{16}")
+# A stored tile is ~1 MB; a file or its unpacked arrays above this is not one of ours.
+MAX_TILE_BYTES = 256 * 2**20
 # How many problems (rejected files, failed writes) a store keeps to report.
 PROBLEMS_KEPT = 5
 
@@ -74,6 +80,7 @@ class TileStore:
         self.failed_writes = 0
         self.write_errors: list[str] = []  # the last few failed writes
         self.problems: list[str] = []  # the last few rejected files and failed writes
+        self.unusable = ""  # why the root cannot hold a store at all, once said
 
     def path(self, kind: str, parts: tuple) -> Path:
         """The file of the tile ``parts`` (its key: strings, numbers, tuples of them)."""
@@ -97,8 +104,9 @@ class TileStore:
         """The store's problems in one line, or "" when there were none."""
         if not self.problems:
             return ""
+        recent = " | ".join(self.problems[-3:])
         return (f"{self.rejected} stored tiles rejected and rebuilt, {self.failed_writes}"
-                f" failed writes in {self.root} (last: {self.problems[-1]})")
+                f" failed writes in {self.root} (latest: {recent})")
 
     def _problem(self, text: str) -> None:
         self.problems = [*self.problems[-(PROBLEMS_KEPT - 1):], text]
@@ -107,8 +115,12 @@ class TileStore:
         """Mark this store's directory used now and remove the directories of other salts
         unused for ``max_age_days`` (default :data:`PRUNE_AFTER_DAYS`): an upgrade leaves
         the old tiles behind, ~40 MB a set. Returns what was removed; errors are ignored (a
-        store that cannot be cleaned still works)."""
-        import shutil
+        store that cannot be cleaned still works).
+
+        Only what this store writes is ever removed: a directory named as a salt directory
+        (16 hex digits), holding a :data:`USED_MARK`, and nothing but kind directories of
+        tile files (:func:`_salt_dir_files`). Anything else under the root is someone
+        else's and is left alone, however old."""
         import time
 
         age_s = 86400.0 * (PRUNE_AFTER_DAYS if max_age_days is None else max_age_days)
@@ -116,26 +128,46 @@ class TileStore:
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
             (self.dir / USED_MARK).touch()
-            for d in self.root.iterdir():
-                if d == self.dir or not d.is_dir() or d.is_symlink():
-                    continue
-                mark = d / USED_MARK
-                used = (mark if mark.exists() else d).stat().st_mtime
+            others = [d for d in self.root.iterdir() if d != self.dir]
+        except (NotADirectoryError, FileExistsError) as exc:  # the root, or above, a file
+            self._unusable(exc)
+            return removed
+        except OSError:  # read-only, say: its tiles may still be read
+            return removed
+        for d in others:
+            files = _salt_dir_files(d)
+            if files is None:
+                continue
+            try:
+                used = max(f.lstat().st_mtime for f in files)  # the mark, or a newer tile
                 if time.time() - used > age_s:
-                    shutil.rmtree(d, ignore_errors=True)
+                    _remove_salt_dir(d, files)
                     removed.append(d)
-        except OSError:
-            pass
+            except OSError:
+                continue
         return removed
+
+    def _unusable(self, exc: OSError) -> None:
+        """Record, once, that the root cannot hold a store (a file, no permission, ...):
+        tiles are built every start, nothing else."""
+        if not self.unusable:
+            self.unusable = (f"cannot write or read tiles in {self.root}, every start builds"
+                             f" them ({type(exc).__name__}: {exc})")
+            self._problem(self.unusable)
 
     def load(self, kind: str, parts: tuple) -> dict[str, np.ndarray] | None:
         """The arrays stored for the tile, or None: not stored, or rejected (unreadable, its
         key or content digest wrong: recorded, :meth:`reject`)."""
         path = self.path(kind, parts)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+            arrays = _read_tile_file(path)
         except FileNotFoundError:
+            return None
+        except NotADirectoryError as exc:  # the root, or a part of it, is a file: no store
+            self._unusable(exc)
+            return None
+        except TileStoreError as exc:
+            self.reject(kind, parts, str(exc))
             return None
         except Exception as exc:  # noqa: BLE001 - truncated, not an npz (BadZipFile, ...):
             self.reject(kind, parts, f"unreadable ({type(exc).__name__}: {exc})")
@@ -165,10 +197,66 @@ class TileStore:
         except OSError as exc:
             self.failed_writes += 1
             self.write_errors = [*self.write_errors[-(PROBLEMS_KEPT - 1):], f"{path}: {exc}"]
-            self._problem(f"cannot write {path}: {exc}")
+            if isinstance(exc, NotADirectoryError):  # no store at all: said once
+                self._unusable(exc)
+            else:
+                self._problem(f"cannot write {path}: {exc}")
         finally:
             if tmp is not None:
                 Path(tmp).unlink(missing_ok=True)
+
+
+def _read_tile_file(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a stored tile file. Only a regular file of sane size is read: a FIFO or
+    device put in the store would block or never end a read, and is refused
+    (:class:`TileStoreError`) without waiting; OS errors propagate."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO opens without a writer
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise TileStoreError(f"it is not a regular file ({stat.filemode(st.st_mode)})")
+        if st.st_size > MAX_TILE_BYTES:
+            raise TileStoreError(f"it is {st.st_size} bytes, more than a tile's"
+                                 f" {MAX_TILE_BYTES}")
+        with np.load(f, allow_pickle=False) as z:
+            unpacked = sum(i.file_size for i in z.zip.infolist())
+            if unpacked > MAX_TILE_BYTES:  # a small file that inflates without end
+                raise TileStoreError(f"it unpacks to {unpacked} bytes, more than a tile's"
+                                     f" {MAX_TILE_BYTES}")
+            return {k: z[k] for k in z.files}
+
+
+def _salt_dir_files(d: Path) -> list[Path] | None:
+    """Every file of ``d`` if it is a salt directory this store wrote (named as one, holding
+    its :data:`USED_MARK`, and only kind directories of tile files below it), else None."""
+    if not SALT_DIR_NAME.fullmatch(d.name) or d.is_symlink() or not d.is_dir():
+        return None
+    try:
+        files = [d / USED_MARK]
+        if not files[0].is_file():
+            return None
+        for kind in d.iterdir():
+            if kind.name == USED_MARK:
+                continue
+            if kind.is_symlink() or not kind.is_dir():
+                return None
+            for f in kind.iterdir():
+                if f.is_symlink() or not f.is_file() or f.suffix != ".npz":
+                    return None
+                files.append(f)
+    except OSError:
+        return None
+    return files
+
+
+def _remove_salt_dir(d: Path, files: list[Path]) -> None:
+    """Remove a salt directory's files one by one, then its (now empty) directories: a file
+    that appeared meanwhile keeps its directory, and is not removed unseen."""
+    for f in files:
+        f.unlink(missing_ok=True)
+    for kind in {f.parent for f in files} - {d}:
+        kind.rmdir()
+    d.rmdir()
 
 
 def _content_digest(arrays: dict[str, np.ndarray]) -> str:
