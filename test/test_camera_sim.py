@@ -231,6 +231,28 @@ def test_periodic_visits_skip_while_rendering(ros_domain):
         close()
 
 
+def test_a_visit_triggered_right_after_another_waits_for_the_readout(ros_domain):
+    """A trigger right after a visit (a driver that asks as soon as the correction is
+    applied): the camera exposes once readout_s has passed since the last exposure, so
+    ofc_node's min_visit_period_s (sim.yaml, at most readout_s) never refuses the visit."""
+    from cwfs_ros.cli.replay import node_parameters
+    from cwfs_ros.config import config_dir, load_yaml
+
+    readout = 1.5
+    node, t, close = make_system(ros_domain, readout_s=readout, n_photons=2e4)
+    try:
+        stamps = [visit(t), visit(t), visit(t)]
+        gaps_s = np.diff(stamps) / 1e9
+        assert np.all(gaps_s >= readout), gaps_s
+        assert np.all(gaps_s < readout + 5.0), gaps_s  # waited for, not skipped
+        assert node.stats["visits_skipped"] == 0
+    finally:
+        close()
+    shipped = node_parameters("camera_sim_node")["readout_s"]
+    sim_ofc = load_yaml(config_dir() / "sim.yaml")["ofc_node"]["ros__parameters"]
+    assert sim_ofc["min_visit_period_s"] <= shipped
+
+
 def test_a_corner_subset_is_rendered_and_published_alone(ros_domain):
     """``corners: [R04]``: only R04's two image topics have a publisher and receive the
     visit; the truth still covers the four corners. A name that is not a corner stops the

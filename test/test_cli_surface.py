@@ -76,6 +76,26 @@ def test_field_outside_the_field_of_view_is_refused():
                    "1.5", "--field-extra", "2.0", "1.5")
     assert proc.returncode == 2 and proc.stdout == ""
     assert "2.500 deg off axis, outside the field of view of lsst (2.1 deg" in proc.stderr
+    # A field in arcseconds is named as such; a wavelength in micrometres too.
+    proc = run_cli("estimate", INTRA, EXTRA, "--instrument", "lsst", "--field-intra", "-4517.6",
+                   "-4285.1", "--field-extra", "-4285.1", "-4285.1")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "outside the field of view of lsst" in proc.stderr
+    assert "in arcseconds that is (-1.255, -1.19) deg" in proc.stderr, proc.stderr
+    proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY, "--wavelength", "0.622")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "outside 250-2500 nm (micrometres? 0.622 um = 622 nm)" in proc.stderr, proc.stderr
+
+
+
+def test_a_whole_frame_given_to_estimate_names_the_frames_path(tmp_path: Path):
+    frame = tmp_path / "frame.npy"
+    np.save(frame, np.random.default_rng(0).poisson(30.0, (2000, 1000)).astype(float))
+    proc = run_cli("estimate", frame, frame, "--field-intra", "-1.2", "-1.19",
+                   "--field-extra", "-1.19", "-1.19")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "a 2000x1000 image: estimate takes one donut per image" in proc.stderr, proc.stderr
+    assert "input_mode frames" in proc.stderr
 
 
 def test_lsst_admits_every_corner_sensor_and_the_fam_set():

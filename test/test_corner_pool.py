@@ -28,6 +28,7 @@ def test_jobs_report_problems_instead_of_raising():
     assert not tiny.valid and tiny.reason == "stamp_too_small"
     assert tiny.status.startswith("stamp_too_small:") and np.all(np.isnan(tiny.zernikes_nm))
     assert tiny.zernikes_nm.shape == (19,) and tiny.noll == tuple(range(4, 23))
+    assert tiny.n_pairs == 0  # no pair behind an invalid corner
     d = synthetic_donut(160, 60.0, 0.61)
     bad = d.copy()
     bad[5, 5] = np.inf

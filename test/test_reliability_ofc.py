@@ -262,5 +262,11 @@ def test_frame_id_parameter_length_is_limited(ros_context, spin):
     ofc = spin(OfcNode(context=ros_context))
     (res,) = ofc.set_parameters([Parameter("frame_id", value="x" * 1_000_000)])
     assert not res.successful and "at most 256" in res.reason
+    for bad in ("bad/id\\n", "/telescope", "tele scope", "a//b", ""):
+        (res,) = ofc.set_parameters([Parameter("frame_id", value=bad)])
+        assert not res.successful and "is not a frame name" in res.reason, (bad, res.reason)
+    assert ofc.frame_id == "telescope"
     (res,) = ofc.set_parameters([Parameter("frame_id", value="telescope_2")])
+    assert res.successful
+    (res,) = ofc.set_parameters([Parameter("frame_id", value="lsst/telescope_2")])
     assert res.successful

@@ -315,6 +315,12 @@ def test_inconsistent_pairs_make_the_corner_invalid(intra_frame, extra_frame):
     out = frame_outcome(res)
     assert not out.valid and out.reason == "inconsistent_pairs"
     assert np.all(np.isnan(out.zernikes_nm))
+    # The published status is the summary, notes included (a cap reached, a window).
+    from dataclasses import replace
+
+    noted = frame_outcome(replace(res, note="the intra frame reached max_candidates (3)"))
+    assert noted.status.startswith("inconsistent_pairs: the 2 star pairs"), noted.status
+    assert noted.status.endswith("; the intra frame reached max_candidates (3)"), noted.status
 
 
 def test_combination_single_pair_uses_noise_model():

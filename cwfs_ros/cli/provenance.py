@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from cwfs_ros.errors import ConfigError, CwfsError
+
 __all__ = [
     "FITS_KEYS",
     "Check",
@@ -285,6 +287,21 @@ def _geometry(inputs: dict[str, PairInput], fields: dict[str, Any],
     return got, sources, defocus
 
 
+def _frame_hint(inputs: dict[str, Any], inst: Any) -> str:
+    """For an image far larger than a donut stamp (a whole frame): what takes frames."""
+    rows, cols = (max(np.shape(inputs[s].image)[k] for s in inputs) for k in (0, 1))
+    if max(rows, cols) < FRAME_FACTOR * inst.stamp_size_px:
+        return ""
+    return (f"a {rows}x{cols} image: estimate takes one donut per image, cut out as a stamp "
+            f"(about {inst.stamp_size_px} px for {inst.name}); frames with several stars go "
+            "to wavefront_node with input_mode frames, or to "
+            "cwfs_ros.frames.estimate_corner_frames")
+
+
+# An image this many stamp sizes across is taken for a frame in the estimate's messages.
+FRAME_FACTOR = 4
+
+
 def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
              field_extra: Any = None, instrument: str = "lsst", band: str | None = None,
              wavelength_nm: float | None = None, defocal_offset_mm: float | None = None,
@@ -299,11 +316,17 @@ def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
     fields, sources, defocus = _geometry(inputs, {"intra": field_intra, "extra": field_extra},
                                          defocal_offset_mm, inst)
     band = band or inst.default_band
-    result = estimate_wavefront(
-        inputs["intra"].image, inputs["extra"].image, field_intra_deg=fields["intra"],
-        field_extra_deg=fields["extra"], instrument=inst, band=band,
-        wavelength_nm=wavelength_nm, defocal_offset_mm=defocus, solver=solver,
-        seeing_fwhm_arcsec=seeing_fwhm_arcsec, **algorithm)
+    try:
+        result = estimate_wavefront(
+            inputs["intra"].image, inputs["extra"].image, field_intra_deg=fields["intra"],
+            field_extra_deg=fields["extra"], instrument=inst, band=band,
+            wavelength_nm=wavelength_nm, defocal_offset_mm=defocus, solver=solver,
+            seeing_fwhm_arcsec=seeing_fwhm_arcsec, **algorithm)
+    except CwfsError as exc:
+        hint = _frame_hint(inputs, inst)
+        if not hint or isinstance(exc, ConfigError):
+            raise
+        raise type(exc)(f"{exc} ({hint})") from exc
     checks = assess(result, inst, defocus)
     record = provenance(inputs, instrument=inst, defocal_offset_mm=defocus,
                         seeing_fwhm_arcsec=seeing_fwhm_arcsec, field_sources=sources,

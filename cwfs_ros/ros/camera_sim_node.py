@@ -127,6 +127,7 @@ class CameraSimNode(NodeBasics, Node):
         self.last_fwhm_arcsec = float("nan")
         self.last_rotator_angle_deg = float(self._param("rotator_angle_deg"))
         self._busy = False
+        self._last_exposure_ns = 0  # the stamp of the last visit (render thread only)
         self._closing = False
         self._thread: threading.Thread | None = None
         period = self._init_interfaces()
@@ -387,10 +388,25 @@ class CameraSimNode(NodeBasics, Node):
         truth.fwhm_arcsec = field.fwhm_arcsec
         return truth
 
+    def _exposure_stamp_ns(self) -> int | None:
+        """The visit's exposure time: now, or, within ``readout_s`` of the last exposure, once
+        that has passed (None when the node closes meanwhile). Runs in the render thread."""
+        readout_ns = int(float(self._param("readout_s")) * 1e9)
+        while not self._closing:
+            now = self.get_clock().now().nanoseconds
+            wait_ns = self._last_exposure_ns + readout_ns - now
+            if wait_ns <= 0:
+                self._last_exposure_ns = now
+                return now
+            time.sleep(min(wait_ns / 1e9, 0.1))
+        return None
+
     def _render_visit(self, visit: int, dof: np.ndarray, angle_deg: float = 0.0) -> None:
         t0 = time.monotonic()
         try:
-            stamp_ns = self.get_clock().now().nanoseconds
+            stamp_ns = self._exposure_stamp_ns()
+            if stamp_ns is None:
+                return  # shutting down
             self._publish_rotator(stamp_ns, angle_deg)  # before the visit's images
             p = self._param
             npix, n_photons = int(p("npix")), float(p("n_photons"))
@@ -574,6 +590,12 @@ def _declare_image_parameters(d: Declare) -> None:
     d("visit_period_s", describe(
         "Visit cadence [s]; 0 = only on a ~/trigger call. A period that falls while the "
         "previous visit still renders is skipped.", fp_range=(0.0, 3600.0), **ro))
+    d("readout_s", describe(
+        "Shortest time between two visits' exposures [s]: a visit requested sooner (a "
+        "trigger right after a correction) is exposed once this has passed since the last "
+        "one, as a camera exposes no faster than it reads out. ofc_node's "
+        "min_visit_period_s must not exceed it (config/sim.yaml).",
+        fp_range=(0.0, 60.0), **ro))
     d("n_photons", describe(
         "Expected photons per donut (unvignetted pupil).", fp_range=(1.0, 1e9), **ro))
     d("sky_per_pixel", describe(

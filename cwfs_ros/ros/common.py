@@ -24,6 +24,7 @@ QoS, chosen on purpose
 from __future__ import annotations
 
 import os
+import re
 import socket
 import threading
 import time
@@ -364,15 +365,23 @@ class RejectionCounter:
 MAX_STRING_PARAM_LEN = 256
 
 
+# A frame_id as tf2 takes one: no leading slash, no empty segment, no spaces or escapes.
+FRAME_ID = re.compile(r"[A-Za-z0-9_]+(/[A-Za-z0-9_]+)*")
+
+
 def string_param_problem(name: str, value: object,
                          max_len: int = MAX_STRING_PARAM_LEN) -> str | None:
-    """Why a string parameter value is refused (too long, control characters), or None."""
+    """Why a string parameter value is refused (too long, control characters; a
+    ``frame_id`` that is not a frame name, :data:`FRAME_ID`), or None."""
     if not isinstance(value, str):
         return None
     if len(value) > max_len:
         return f"{name} is {len(value)} characters long; at most {max_len} are taken"
     if any(ord(ch) < 32 for ch in value):
         return f"{name} must not hold control characters"
+    if name.split(".")[-1] == "frame_id" and not FRAME_ID.fullmatch(value):
+        return (f"{name} {value!r} is not a frame name: words of letters, digits and _, "
+                f"joined by / (no leading /, as tf2 names frames)")
     return None
 
 

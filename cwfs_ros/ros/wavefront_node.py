@@ -296,7 +296,9 @@ class WavefrontNode(ManagedNode):
     def _declare_estimator_parameters(d) -> None:
         """The optical model and the estimator's settings."""
         d("instrument", describe(
-            "Instrument model: a config/instruments/<name>.yaml name or a path to one."))
+            "Instrument model: a config/instruments/<name>.yaml name or a path to one. Set "
+            "at start only, as the other files the node reads: a path given through the "
+            "parameter services could load any file as the optical model.", read_only=True))
         d("band", describe("Filter band of the optical model.",
                                 constraints="u | g | r | i | z | y"))
         d("solver", describe("TIE solver: exp (series expansion), fft, lsq.",

@@ -136,7 +136,7 @@ def invalid_outcome(corner: str, stamp_ns: int, reason: str, message: str,
     status = message if message.startswith(reason + ":") else f"{reason}: {message}"
     return CornerOutcome(corner, int(stamp_ns), False, status, reason,
                          np.full(len(_NOLL), np.nan), _mid(field_intra, field_extra),
-                         solver=solver, compute_ms=compute_ms, worker_pid=os.getpid())
+                         solver=solver, compute_ms=compute_ms, worker_pid=os.getpid(), n_pairs=0)
 
 
 def _shapes(job: CornerJob) -> str:
@@ -225,8 +225,8 @@ def frame_outcome(res: Any) -> CornerOutcome:
     z = np.asarray(res.zernikes_nm, dtype=np.float64)
     unc = np.asarray(res.uncertainty_nm, dtype=np.float64)
     ms = float(res.timing_ms.get("total", 0.0))
-    if not res.valid:
-        return CornerOutcome(res.corner, int(res.stamp_ns), False, res.status, res.reason,
+    if not res.valid:  # the summary: its reason first, then what was dropped and noted
+        return CornerOutcome(res.corner, int(res.stamp_ns), False, res.summary(), res.reason,
                              np.full(len(_NOLL), np.nan), tuple(res.field_deg),
                              caustic=bool(res.caustic), compute_ms=ms, solver=res.solver,
                              worker_pid=res.worker_pid, uncertainty_nm=None,

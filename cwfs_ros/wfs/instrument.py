@@ -18,9 +18,30 @@ import yaml
 from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
 
-__all__ = ["Instrument", "load_instrument", "available_instruments", "MAPPINGS"]
+__all__ = ["Instrument", "load_instrument", "available_instruments", "MAPPINGS",
+           "WAVELENGTH_RANGE_NM", "checked_wavelength_nm"]
 
 MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
+
+
+# Wavelengths a curvature sensor works in (nm): near UV to near IR. Outside, the value is in
+# another unit (0.622 is um, 6.22e-7 is m) or a typo.
+WAVELENGTH_RANGE_NM = (250.0, 2500.0)
+
+
+def checked_wavelength_nm(value: float) -> float:
+    """``value`` (nm) if within :data:`WAVELENGTH_RANGE_NM`, else ConfigError naming the
+    unit it looks like."""
+    lo, hi = WAVELENGTH_RANGE_NM
+    v = float(value)
+    if lo <= v <= hi:
+        return v
+    hint = ""
+    if 0 < v < 1e-4:
+        hint = f" (metres? {v:g} m = {v * 1e9:g} nm)"
+    elif 0 < v < 10:
+        hint = f" (micrometres? {v:g} um = {v * 1e3:g} nm)"
+    raise ConfigError(f"wavelength_nm {value!r} is outside {lo:g}-{hi:g} nm{hint}")
 
 
 @dataclass(frozen=True)
@@ -120,18 +141,19 @@ class Instrument:
     def check_field(self, field_deg: tuple[float, float], what: str = "field") -> None:
         """Refuse a field (x, y) in degrees beyond :attr:`field_radius_deg` (ConfigError)."""
         r = float(np.hypot(*field_deg))
-        if r > self.field_radius_deg:
+        if not r <= self.field_radius_deg:
+            # Far beyond any telescope's field: another unit (arcsec reads as 3600x).
+            unit = (f"; in arcseconds that is ({field_deg[0] / 3600:.4g}, "
+                    f"{field_deg[1] / 3600:.4g}) deg" if r > 60.0 else "")
             raise ConfigError(
                 f"{what} ({field_deg[0]:g}, {field_deg[1]:g}) deg is {r:.3f} deg off axis, "
                 f"outside the field of view of {self.name} ({self.field_radius_deg:g} deg "
-                "radius, field_radius_deg of its instrument file)")
+                f"radius, field_radius_deg of its instrument file){unit}")
 
     def wavelength_nm(self, band: str | None, wavelength_nm: float | None = None) -> float:
         """The wavelength to use: the caller's, else the band's effective wavelength."""
         if wavelength_nm is not None:
-            if not wavelength_nm > 0:
-                raise ConfigError(f"wavelength_nm must be positive, got {wavelength_nm!r}")
-            return float(wavelength_nm)
+            return checked_wavelength_nm(wavelength_nm)
         band = band or self.default_band
         try:
             return float(self.band_wavelength_nm[band])
