@@ -12,13 +12,17 @@ sky subtracted (float) or raw counts rounded into uint16 (integer).
               level given and not): rejected?  Also the ZEMAX/FAM test images.
   swap        correct pairs at the four corners: rejected as swapped? (false positives);
               the same pairs exchanged: rejected? (detection); and a field-radius scan.
+  orientation correct pairs at the four corners: rejected as misoriented? (false positives);
+              one half turned by a quarter turn or mirrored (the seven wrong orientations
+              of the square, each half in turn): rejected as misoriented? (detection).
   wrap        the decoder's wrap test at the converter's depth (runtime/images.py): genuine
               raw counts of a 10-, 12-, 14- or 16-bit ADC in 16UC1 (bias 1-10 % of the range,
               peak at 50-99 % of it): refused? (false positives); the same counts 1.05-3x
               past the range, wrapped (with the bias and without one): refused as wrapped?
               and clipped: refused as what, by the decoder and then by the estimator?
 
-Usage: .venv/bin/python bench/bench_input_checks.py [saturation] [swap] [wrap] [--seeds N]
+Usage: .venv/bin/python bench/bench_input_checks.py [saturation] [swap] [orientation] [wrap]
+       [--seeds N]
        [--perturbations K] [--rays R]
 """
 
@@ -306,6 +310,45 @@ def bench_swap(pairs: list[dict], scan: list[dict], seeds: int,
                   f"detected {d:3d}/{m:3d} (pf {rng_(sw, 1)}, pv {rng_(sw, 0)})")
 
 
+def bench_orientation(pairs: list[dict], seeds: int, rng: np.random.Generator) -> None:
+    from cwfs_ros.wfs.checks import WRONG_ORIENTATIONS
+    from cwfs_ros.wfs.orientation import orient_image
+
+    print("\n== orientation: correct pairs rejected as misoriented (false positives) / one "
+          "half turned or mirrored rejected as misoriented (detection), per orientation "
+          "(numpy.rot90 quarter turns, then a left-right mirror); pairs the stamp checks "
+          "rejected are not counted. The mirrors about a corner's diagonal (rot90 1 or 3, "
+          "then lr) leave two of the four corners' lunes unchanged")
+    res = defaultdict(lambda: [0, 0])
+    det = defaultdict(lambda: defaultdict(lambda: [0, 0]))
+    for p in pairs:
+        for photons in (3e4, 1e5, 1e6):
+            for sky in (10.0, 50.0):
+                for _ in range(seeds):
+                    a = noisy(p["intra"], photons, sky, False, rng)
+                    b = noisy(p["extra"], photons, sky, False, rng)
+                    ok = outcome(a, b, p["fi"], p["fe"])
+                    if ok not in ("", "misoriented"):
+                        continue  # too faint, cut etc.: never reaches the check
+                    r = res[(photons, sky)]
+                    r[0] += ok == "misoriented"
+                    r[1] += 1
+                    for o in WRONG_ORIENTATIONS:
+                        for side in ("intra", "extra"):
+                            got = outcome(orient_image(a, o) if side == "intra" else a,
+                                          orient_image(b, o) if side == "extra" else b,
+                                          p["fi"], p["fe"])
+                            d = det[(photons, sky)][(o.rot90, o.flip)]
+                            d[0] += got == "misoriented"
+                            d[1] += 1
+    for key in sorted(res):
+        f, n = res[key]
+        rates = "  ".join(f"{k[0]}{'+lr' if k[1] == 'lr' else ''}: {d:3d}/{m:3d}"
+                          for k, (d, m) in sorted(det[key].items(), key=lambda kv: kv[0][::-1]))
+        print(f"  {key[0]:7.0e} photons, sky {key[1]:3.0f}: false positives {f:3d}/{n:3d}; "
+              f"detected {rates}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sections", nargs="*", default=["saturation", "swap"])
@@ -326,6 +369,8 @@ def main() -> None:
                         (-r / np.sqrt(2), r / np.sqrt(2))) for r in (0.0, 0.8, 1.0, 1.2, 1.4)]
         scan = traced_pairs(tels[:3], scan_fields, a.rays, rng)
         bench_swap(pairs, scan, a.seeds, rng)
+    if "orientation" in a.sections:
+        bench_orientation(pairs, a.seeds, rng)
     if "wrap" in a.sections:
         bench_wrap(pairs, a.seeds * 6, rng)
     print(f"(total {time.perf_counter() - t0:.0f} s)")

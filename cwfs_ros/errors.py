@@ -21,7 +21,8 @@ from dataclasses import dataclass
 __all__ = [
     "CwfsError", "ConfigError", "ImageError", "NonFiniteImageError", "FlatImageError",
     "DonutCutError", "ShapeMismatchError", "FrameSizeError", "StampTooSmallError",
-    "SaturatedImageError", "SwappedImagesError", "ParamsFileError", "BagError",
+    "SaturatedImageError", "SwappedImagesError", "MisorientedImageError", "ParamsFileError",
+    "BagError",
     "TileStoreError", "LaunchError", "ToolError", "LoopError", "CliError", "Problem",
 ]
 
@@ -76,6 +77,12 @@ class SwappedImagesError(ImageError):
     """The intra- and extra-focal images look exchanged (:mod:`.checks`)."""
 
     reason = "swapped"
+
+
+class MisorientedImageError(ImageError):
+    """One image looks turned or mirrored against its predicted footprint (:mod:`.checks`)."""
+
+    reason = "misoriented"
 
 
 class ParamsFileError(ConfigError):

@@ -112,13 +112,14 @@ def test_lsst_admits_every_corner_sensor_and_the_fam_set():
 
 
 def test_an_implausible_estimate_exits_3_and_prints_nothing():
-    """FAM R34_S12 given a wrong field (its true one is (0.706, 1.646))."""
-    wrong = ["--field-intra", "1.411", "-1.411", "--field-extra", "1.411", "-1.411"]
-    proc = run_cli("estimate", *R34, *FAM_ARGS, *wrong)
+    """FAM R22_S11, a pair near the axis, told a corner's field: its round donuts show no
+    vignetting to refuse the field by, and the model's vignetted pupil reads tens of um."""
+    wrong = ["--field-intra", "1.4", "-1.4", "--field-extra", "1.4", "-1.4"]
+    proc = run_cli("estimate", *R22, *FAM_ARGS, *wrong)
     assert proc.returncode == EXIT_FLAGGED and proc.stdout == ""
     assert "flagged: plausible: largest departure from design" in proc.stderr
     assert "--allow-flagged" in proc.stderr and "Traceback" not in proc.stderr
-    proc = run_cli("estimate", *R34, *FAM_ARGS, *wrong, "--allow-flagged", "--json")
+    proc = run_cli("estimate", *R22, *FAM_ARGS, *wrong, "--allow-flagged", "--json")
     out = json.loads(proc.stdout)
     assert proc.returncode == 0 and "plausible" in out["flags"]
     assert {c["name"]: c["outcome"] for c in out["checks"]}["plausible"] == "fail"
@@ -139,6 +140,17 @@ def test_a_wrong_field_that_stays_plausible_warns_that_the_loop_has_not_settled(
         details[name] = {c["name"]: c for c in out["checks"]}["settled"]["detail"]
     assert "WARNING" not in details["true"]
     assert details["wrong"].startswith("WARNING") and "field angles" in details["wrong"]
+
+
+def test_a_field_whose_vignetting_points_elsewhere_is_refused():
+    """FAM R34_S12 given a field in another direction (its true one is (0.706, 1.646)):
+    the donuts' vignetted lunes point the wrong way for it, refused before estimating."""
+    for fx, fy in ((1.411, -1.411), (-0.706, 1.646), (1.646, 0.706)):
+        wrong = ["--field-intra", str(fx), str(fy), "--field-extra", str(fx), str(fy)]
+        proc = run_cli("estimate", *R34, *FAM_ARGS, *wrong)
+        assert proc.returncode == 2 and proc.stdout == "", (fx, fy, proc.stderr)
+        assert "looks turned or mirrored" in proc.stderr
+        assert "that the field given is this image's" in proc.stderr
 
 
 def test_a_caustic_estimate_exits_3():

@@ -51,7 +51,9 @@ from cwfs_ros.wfs.checks import (
     PairFootprints,
     SwapScore,
     check_not_swapped,
+    check_orientation,
     pair_footprints,
+    stamp_windows,
 )
 from cwfs_ros.wfs.compensation import Compensated, compensate
 from cwfs_ros.wfs.donuts import PreparedDonut, prepare_donut
@@ -897,9 +899,15 @@ def _prepare_donuts(a_in: np.ndarray, a_ex: np.ndarray, cfg: EstimateConfig,
                       for a, name in ((a_in, "intra"), (a_ex, "extra")))
     swap = None
     if cfg.checks.swap_check and geom.footprints is not None:
-        swap = check_not_swapped(don_in.image, don_ex.image, don_in.centroid_xy,
-                                 don_ex.centroid_xy, (don_in.noise, don_ex.noise),
-                                 geom.footprints, cfg.checks)
+        centroids, noise = (don_in.centroid_xy, don_ex.centroid_xy), (don_in.noise, don_ex.noise)
+        fp = geom.footprints
+        windows = stamp_windows(don_in.image, don_ex.image, centroids, noise, fp.size)
+        swap = check_not_swapped(don_in.image, don_ex.image, *centroids, noise, fp,
+                                 cfg.checks, windows)
+        # One half turned or mirrored, on the same footprints (after the swap check: a pair
+        # exchanged, or both halves turned by 180 degrees, is named as such first).
+        check_orientation(don_in.image, don_ex.image, centroids, noise, fp, cfg.checks,
+                          windows)
     return (don_in, don_ex), swap
 
 
