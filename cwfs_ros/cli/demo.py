@@ -547,9 +547,9 @@ td,th{{padding:2px 10px;text-align:right}}</style></head><body>
 {run.config.n_photons:g} photons per donut) through camera_sim_node, wavefront_node and
 ofc_node. True wavefront error (design removed, mean over corners of
 sqrt(&Sigma; Z4..Z22&sup2;)): {e[0]:.0f} nm at the first visit, {e[-1]:.0f} nm at the last,
-a reduction of {run.reduction(5):.1f}&times; within 5 visits. Over the science field (31
-Gaussian-quadrature points): {fe[0]:.0f} nm &rarr; {fe[-1]:.0f} nm, a reduction of
-{run.reduction(5, "field"):.1f}&times; within 5 visits. Camera rotator
+a reduction of {run.reduction(5):.1f}&times; within {min(5, len(e))} visits. Over the science
+field (31 Gaussian-quadrature points): {fe[0]:.0f} nm &rarr; {fe[-1]:.0f} nm, a reduction of
+{run.reduction(5, "field"):.1f}&times; within {min(5, len(e))} visits. Camera rotator
 {run.config.rotator_angle_deg:g}&deg;.</p>
 <img src="{png_name}" style="width:100%">
 <table><tr><th>visit</th><th>true corner error (nm)</th><th>true field error (nm)</th>
