@@ -107,6 +107,18 @@ def outcome(intra: np.ndarray, extra: np.ndarray, fi: tuple, fe: tuple, **kw) ->
     return ""
 
 
+def realisations(pairs: list[dict], photon_levels: tuple[float, ...], seeds: int,
+                 rng: np.random.Generator):
+    """``(pair, photons, sky, intra, extra)``: ``seeds`` noisy float pairs of each pair at
+    each photon count and sky (10, 50 e-/px)."""
+    for p in pairs:
+        for photons in photon_levels:
+            for sky in (10.0, 50.0):
+                for _ in range(seeds):
+                    yield (p, photons, sky, noisy(p["intra"], photons, sky, False, rng),
+                           noisy(p["extra"], photons, sky, False, rng))
+
+
 def corner_fields() -> list[tuple[str, tuple, tuple]]:
     return [(n, tuple(c["intra"]["field_deg"]), tuple(c["extra"]["field_deg"]))
             for n, c in CORNERS.items()]
@@ -276,27 +288,20 @@ def bench_swap(pairs: list[dict], scan: list[dict], seeds: int,
     for label, items in (("corners", pairs), ("field scan", scan)):
         res = defaultdict(lambda: [0, 0, 0, 0])
         prefs = defaultdict(lambda: ([], []))
-        for p in items:
+        for p, photons, sky, a, b in realisations(items, (1e4, 3e4, 1e5, 1e6), seeds, rng):
             group = p["name"] if label == "field scan" else "4 corners"
-            for photons in (1e4, 3e4, 1e5, 1e6):
-                for sky in (10.0, 50.0):
-                    for _ in range(seeds):
-                        a = noisy(p["intra"], photons, sky, False, rng)
-                        b = noisy(p["extra"], photons, sky, False, rng)
-                        ok = outcome(a, b, p["fi"], p["fe"])
-                        if ok not in ("", "swapped"):
-                            continue  # too faint etc.: never reaches the swap check
-                        sw = outcome(b, a, p["fi"], p["fe"])
-                        r = res[(group, photons, sky)]
-                        if sw in ("", "swapped"):
-                            prefs[(group, photons, sky)][0].append(
-                                scores(a, b, p["fi"], p["fe"]))
-                            prefs[(group, photons, sky)][1].append(
-                                scores(b, a, p["fi"], p["fe"]))
-                        r[0] += ok == "swapped"
-                        r[1] += 1
-                        r[2] += sw == "swapped"
-                        r[3] += sw in ("", "swapped")
+            ok = outcome(a, b, p["fi"], p["fe"])
+            if ok not in ("", "swapped"):
+                continue  # too faint etc.: never reaches the swap check
+            sw = outcome(b, a, p["fi"], p["fe"])
+            r = res[(group, photons, sky)]
+            if sw in ("", "swapped"):
+                prefs[(group, photons, sky)][0].append(scores(a, b, p["fi"], p["fe"]))
+                prefs[(group, photons, sky)][1].append(scores(b, a, p["fi"], p["fe"]))
+            r[0] += ok == "swapped"
+            r[1] += 1
+            r[2] += sw == "swapped"
+            r[3] += sw in ("", "swapped")
         print(f"  {label}:")
         for key in sorted(res, key=lambda k: (str(k[0]), k[1], k[2])):
             f, n, d, m = res[key]
@@ -321,26 +326,20 @@ def bench_orientation(pairs: list[dict], seeds: int, rng: np.random.Generator) -
           "then lr) leave two of the four corners' lunes unchanged")
     res = defaultdict(lambda: [0, 0])
     det = defaultdict(lambda: defaultdict(lambda: [0, 0]))
-    for p in pairs:
-        for photons in (3e4, 1e5, 1e6):
-            for sky in (10.0, 50.0):
-                for _ in range(seeds):
-                    a = noisy(p["intra"], photons, sky, False, rng)
-                    b = noisy(p["extra"], photons, sky, False, rng)
-                    ok = outcome(a, b, p["fi"], p["fe"])
-                    if ok not in ("", "misoriented"):
-                        continue  # too faint, cut etc.: never reaches the check
-                    r = res[(photons, sky)]
-                    r[0] += ok == "misoriented"
-                    r[1] += 1
-                    for o in WRONG_ORIENTATIONS:
-                        for side in ("intra", "extra"):
-                            got = outcome(orient_image(a, o) if side == "intra" else a,
-                                          orient_image(b, o) if side == "extra" else b,
-                                          p["fi"], p["fe"])
-                            d = det[(photons, sky)][(o.rot90, o.flip)]
-                            d[0] += got == "misoriented"
-                            d[1] += 1
+    for p, photons, sky, a, b in realisations(pairs, (3e4, 1e5, 1e6), seeds, rng):
+        ok = outcome(a, b, p["fi"], p["fe"])
+        if ok not in ("", "misoriented"):
+            continue  # too faint, cut etc.: never reaches the check
+        r = res[(photons, sky)]
+        r[0] += ok == "misoriented"
+        r[1] += 1
+        for o in WRONG_ORIENTATIONS:
+            for side in ("intra", "extra"):
+                got = outcome(orient_image(a, o) if side == "intra" else a,
+                              orient_image(b, o) if side == "extra" else b, p["fi"], p["fe"])
+                d = det[(photons, sky)][(o.rot90, o.flip)]
+                d[0] += got == "misoriented"
+                d[1] += 1
     for key in sorted(res):
         f, n = res[key]
         rates = "  ".join(f"{k[0]}{'+lr' if k[1] == 'lr' else ''}: {d:3d}/{m:3d}"
