@@ -55,17 +55,21 @@ CORNERS = yaml.safe_load((config_dir() / "sensors" / "lsst_corners.yaml").read_t
     "corners"]
 
 
-def telescopes(k: int, rng: np.random.Generator) -> list:
-    """The nominal telescope and k-1 perturbed ones (200-900 nm mean at the corners)."""
-    out = [perturbed_telescope(np.zeros(50), band="r")]
+def telescopes(k: int, rng: np.random.Generator,
+               span_nm: tuple[float, float] = (200.0, 900.0)) -> list:
+    """The nominal telescope (unless the span excludes it) and perturbed ones, ``k`` in
+    all, with a mean wavefront at the corners within ``span_nm``."""
+    lo, hi = span_nm
+    out = [perturbed_telescope(np.zeros(50), band="r")] if lo <= 200.0 else []
     mids = [tuple(c["mid_deg"]) for c in CORNERS.values()]
+    scale = SCALE * max(1.0, hi / 900.0)  # larger draws for a span of larger errors
     while len(out) < k:
         dof = np.zeros(50)
-        dof[:10] = rng.normal(0, 1, 10) * SCALE
+        dof[:10] = rng.normal(0, 1, 10) * scale
         tel = perturbed_telescope(dof, band="r")
         tot = np.mean([np.sqrt(np.sum(true_zernikes_nm(tel, m, wavelength_nm=622.0) ** 2))
                        for m in mids])
-        if 200 <= tot <= 900:
+        if lo <= tot <= hi:
             out.append(tel)
     return out
 
@@ -354,12 +358,16 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--perturbations", type=int, default=5, help="telescopes incl. nominal")
     ap.add_argument("--rays", type=int, default=200_000)
+    ap.add_argument("--span-nm", type=float, nargs=2, default=(200.0, 900.0),
+                    metavar=("LO", "HI"),
+                    help="mean wavefront at the corners of the perturbed telescopes (nm)")
     a = ap.parse_args()
     rng = np.random.default_rng(2027)
     t0 = time.perf_counter()
-    tels = telescopes(a.perturbations, rng)
+    tels = telescopes(a.perturbations, rng, tuple(a.span_nm))
     pairs = traced_pairs(tels, corner_fields(), a.rays, rng)
-    print(f"traced {len(pairs)} corner pairs ({a.rays} rays each) in "
+    print(f"traced {len(pairs)} corner pairs ({a.rays} rays each; telescopes of "
+          f"{a.span_nm[0]:g}-{a.span_nm[1]:g} nm at the corners) in "
           f"{time.perf_counter() - t0:.0f} s")
     if "saturation" in a.sections:
         bench_saturation(pairs, a.seeds, rng)

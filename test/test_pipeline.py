@@ -144,7 +144,8 @@ def test_a_conflict_while_waiting_closes_the_corner():
 def test_an_unpaired_corner_names_its_partners_refused_stamp():
     """The extra image's stamp is refused (it names no time): its intra partner times out
     ``unpaired``, and the corner's status says what became of the extra image; once an
-    extra image of that corner pairs again, the old refusal is no longer named."""
+    extra image of that corner pairs again, or for a refusal before the exposure, it is
+    not named."""
     pipe = WavefrontPipeline(params(visit_timeout_s=2.0).__getitem__, CORNERS)
     bad = image(160)
     bad.header.stamp.nanosec = 1_500_000_000
@@ -159,6 +160,8 @@ def test_an_unpaired_corner_names_its_partners_refused_stamp():
     assert "the latest extra image of R04 was refused: bad_stamp" in out.status, out.status
     assert "nanosec 1500000000" in out.status, out.status
     pair_of(pipe, "R04", 160, T0 + 30 * 10**9, now_s=20.0)
+    # A refusal before the next visit's exposure belongs to an earlier visit: not named.
+    assert pipe.refusal(bad, "R04", "extra", T0 + 45 * 10**9).reason == "bad_stamp"
     rec, _ = pipe.record(image(160, T0 + 60 * 10**9), "R04", "intra", 40.0)
     pipe.add_record(rec)
     (unpaired,) = pipe.expire_pairs(50.0)

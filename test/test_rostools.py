@@ -122,6 +122,14 @@ def test_param_set_changes_the_running_node_or_says_why_not(graph, capsys):
     code, out, err = _run(capsys, "param", "set", "ofc_node", "rotator_angle_deg", "--",
                           "-2.5e1")
     assert code == 0 and ofc.get_parameter("rotator_angle_deg").value == -25.0, err
+    # Text YAML cannot read is the text itself, as ros2 takes it; a YAML mapping is no
+    # parameter value and is said so in one line; an integer for a double names the fix.
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "frame_id", "a\tb")
+    assert code == 1 and "control characters" in err and "Traceback" not in err, err
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "frame_id", "x: y")
+    assert code == 1 and "is a YAML mapping" in err and "Traceback" not in err, err
+    code, out, err = _run(capsys, "param", "set", "ofc_node", "rotator_angle_deg", "-5")
+    assert code == 1 and "(a double is written with a point: -5.0)" in err, err
     # A misspelt name: named, with the nearest declared one.
     code, out, err = _run(capsys, "param", "set", "ofc_node", "dryrun", "true")
     assert code == 1 and "declares no parameter 'dryrun'; did you mean 'dry_run'?" in err, err

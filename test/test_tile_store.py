@@ -172,6 +172,41 @@ def test_the_tiles_of_other_versions_go_after_a_month_unused(tmp_path):
         mp.use_field_tile_store(None)
 
 
+def test_pruning_follows_no_link_swapped_in_after_its_scan(tmp_path, monkeypatch):
+    """Another process that can write in the store root swaps an old salt directory for a
+    link to someone's data between the scan and the removal: nothing behind the link goes;
+    a directory whose mark is a link is not the store's."""
+    import os
+    import time
+
+    from cwfs_ros.wfs import tile_store as ts
+
+    root, victim = tmp_path / "tiles", tmp_path / "victim"
+    (victim / "k").mkdir(parents=True)
+    (victim / "k" / "results.npz").write_text("precious")
+    month_ago = time.time() - 90 * 86400
+    old = root / "abcdefabcdefabcd"
+    (old / "k").mkdir(parents=True)
+    (old / ".last_used").touch()
+    (old / "k" / "results.npz").write_text("x")
+    linked = root / "0000000000000011"
+    (linked / "map").mkdir(parents=True)
+    (linked / ".last_used").symlink_to(victim / "k" / "results.npz")
+    for p in (old / ".last_used", old / "k" / "results.npz"):
+        os.utime(p, (month_ago, month_ago))
+    real = ts._remove_salt_dir
+
+    def swapped_first(d, files):
+        os.rename(d, root / "moved")
+        os.symlink(victim, d)
+        return real(d, files)
+
+    monkeypatch.setattr(ts, "_remove_salt_dir", swapped_first)
+    assert ts.TileStore(root, "salt").prune() == []
+    assert (victim / "k" / "results.npz").read_text() == "precious"
+    assert linked.is_dir() and (linked / ".last_used").is_symlink()
+
+
 def test_a_fifo_or_a_huge_file_in_the_store_is_refused_without_blocking(store):
     import os
     import threading

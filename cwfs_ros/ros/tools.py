@@ -477,8 +477,15 @@ def parameter_value(text: str) -> Any:
     from rcl_interfaces.msg import ParameterType, ParameterValue
     from rclpy.parameter import get_parameter_value
 
+    try:
+        parsed = parse_parameter_text(text)
+    except yaml.YAMLError:  # not YAML (a tab, an unclosed quote): the text itself, as ros2
+        return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=text)
+    if isinstance(parsed, dict):  # rclpy would fail on it while sending
+        raise ToolError(f"VALUE {text!r} is a YAML mapping: a parameter takes a bool, an "
+                        "integer, a double, a string or a list of one of them (quote text "
+                        f"that YAML would read otherwise: \"'{text}'\")")
     value = get_parameter_value(string_value=text)
-    parsed = parse_parameter_text(text)
     if value.type == ParameterType.PARAMETER_STRING and isinstance(parsed, float):
         return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=parsed)
     return value
@@ -501,7 +508,11 @@ def param_set(args: argparse.Namespace) -> int:
             raise ToolError(f"Set parameter failed: {full} declares no parameter "
                             f"{args.name!r}{close_match(args.name, names)}")
     if not result.successful:
-        raise ToolError("Set parameter failed" + (f": {result.reason}" if result.reason else ""))
+        hint = ""
+        if "Type.DOUBLE" in result.reason and "Type.INTEGER" in result.reason:
+            hint = f" (a double is written with a point: {args.value}.0)"
+        raise ToolError("Set parameter failed" + (f": {result.reason}" if result.reason else "")
+                        + hint)
     print("Set parameter successful")
     return 0
 

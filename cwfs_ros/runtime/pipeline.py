@@ -196,9 +196,10 @@ class WavefrontPipeline:
         # (corner, visit stamp) of visits whose corner had conflicting images after pairing:
         # their estimate is made invalid (bounded, oldest forgotten first).
         self._conflicts: OrderedDict[tuple[str, int], str] = OrderedDict()
-        # (corner, side) -> the latest refusal of an image's stamp there, until that side
-        # pairs again: named by its partner's unpaired outcome.
-        self._door_refused: dict[tuple[str, str], Rejection] = {}
+        # (corner, side) -> (the node's clock then, ns; the latest refusal of an image's
+        # stamp there), until an image of that side is taken: named by its partner's
+        # unpaired outcome if it came after that partner's exposure.
+        self._door_refused: dict[tuple[str, str], tuple[int, Rejection]] = {}
 
     def _orientation(self, corner: str, side: str) -> Orientation:
         return Orientation(int(self._get(f"sensors.{corner}.{side}.rot90")),
@@ -252,7 +253,7 @@ class WavefrontPipeline:
         partner, dropped ``unpaired``, says what became of it (:meth:`unpaired_outcome`)."""
         rej = self._door_refusal(msg, corner, side, clock_ns)
         if rej is not None and rej.reason not in PAIRED_REFUSALS:
-            self._door_refused[(corner, side)] = rej
+            self._door_refused[(corner, side)] = (int(clock_ns), rej)
         return rej
 
     def _door_refusal(self, msg: Any, corner: str, side: str, clock_ns: int
@@ -436,10 +437,14 @@ class WavefrontPipeline:
         became of the other side's latest image if its stamp was refused)."""
         f = self.fields[r.corner]
         other = "extra" if r.side == "intra" else "intra"
-        refused = self._door_refused.get((r.corner, other))
-        message = r.message if refused is None else (
-            f"{r.message}; the latest {other} image of {r.corner} was refused: "
-            f"{refused.reason}: {refused.message}")
+        clock_ns, refused = self._door_refused.get((r.corner, other), (0, None))
+        # Only a refusal after this half's exposure can be its partner's (an older one
+        # belongs to an earlier visit; without a clock nothing can be said).
+        if refused is not None and clock_ns >= r.stamp_ns - self.pairing.tolerance_ns > 0:
+            message = (f"{r.message}; the latest {other} image of {r.corner} was refused: "
+                       f"{refused.reason}: {refused.message}")
+        else:
+            message = r.message
         return invalid_outcome(r.corner, r.stamp_ns, r.reason, message, f["intra"],
                                f["extra"], self.settings.solver)
 

@@ -51,12 +51,14 @@ One stamp turned or mirrored (:func:`check_orientation`)
     ``orientation_min_contrast`` (a corner's lune is symmetric about its radial direction,
     so the mirror about the corner's diagonal cannot be told), is not tested.  It runs with
     the swap check, on the footprints that check builds (0.6 ms an estimate).  Measured
-    (``bench/bench_input_checks.py orientation``, rigid-body perturbations of 200-900 nm,
-    +-3 px offsets, sky 10-50 e-/px): no correct corner pair of 328 rejected, nor any of the
-    25 FAM pairs; quarter turns and mirrors 99-100% detected from 1e5 photons, 70-75% at 3e4
-    with sky 50; a corner's diagonal mirror only where it is not the lune's symmetry.  A
-    field in another direction than the star's makes the lune point the wrong way too, and
-    is refused the same way.
+    (``bench/bench_input_checks.py orientation``, rigid-body perturbations of 200-900 nm at
+    the corners, +-3 px offsets, sky 10-50 e-/px): no correct corner pair of 328 rejected,
+    nor any of the 25 FAM pairs; quarter turns and mirrors 98-100% detected from 1e5
+    photons, 70-75% at 3e4 with sky 50; a corner's diagonal mirror only where it is not the
+    lune's symmetry.  With 1-4 um at the corners the aberrations reshape the donut as much
+    as the lune does: 2 of 249 correct pairs rejected, 30-60% of the turned ones.  A field
+    in another direction than the star's makes the lune point the wrong way too, and is
+    refused the same way.
 """
 
 from __future__ import annotations
@@ -129,7 +131,7 @@ class CheckConfig:
     swap_vignetting_veto: float = 0.25
     orientation_check: bool = True
     orientation_min_contrast: float = 0.01
-    orientation_threshold: float = 0.5
+    orientation_threshold: float = 0.6
     orientation_min_significance: float = 5.0
 
     def __post_init__(self) -> None:
@@ -675,7 +677,11 @@ def check_orientation(intra: np.ndarray, extra: np.ndarray,
         f"turns, then a left-right mirror; preference {sc.preference[s, k]:+.2f} at "
         f"{sc.significance[s, k]:+.1f} sigma, +1 = that way round). Check the orientation "
         "its camera delivers it in (wavefront_node: sensors.<corner>.<side>.rot90 and "
-        "flip, applied before the estimate) and that the field given is this image's"
+        "flip, applied before the estimate) and that the field given is this image's. "
+        "Only with several um of wavefront (a telescope far out of alignment) do the "
+        "aberrations reshape a donut as much as its lune, and can make a right one look "
+        "turned (input_checks.orientation_check in config/algorithm.yaml turns the check "
+        "off)"
         + (". An exchanged intra/extra pair looks turned by 180 degrees too, where the "
            "vignetting is too weak for the swap check" if WRONG_ORIENTATIONS[k] ==
            Orientation(2) else ""))

@@ -228,12 +228,13 @@ def _read_tile_file(path: Path) -> dict[str, np.ndarray]:
 
 def _salt_dir_files(d: Path) -> list[Path] | None:
     """Every file of ``d`` if it is a salt directory this store wrote (named as one, holding
-    its :data:`USED_MARK`, and only kind directories of tile files below it), else None."""
+    its :data:`USED_MARK`, and only kind directories of tile files below it, none of them a
+    symbolic link), else None."""
     if not SALT_DIR_NAME.fullmatch(d.name) or d.is_symlink() or not d.is_dir():
         return None
     try:
         files = [d / USED_MARK]
-        if not files[0].is_file():
+        if not stat.S_ISREG(files[0].lstat().st_mode):
             return None
         for kind in d.iterdir():
             if kind.name == USED_MARK:
@@ -250,13 +251,41 @@ def _salt_dir_files(d: Path) -> list[Path] | None:
 
 
 def _remove_salt_dir(d: Path, files: list[Path]) -> None:
-    """Remove a salt directory's files one by one, then its (now empty) directories: a file
-    that appeared meanwhile keeps its directory, and is not removed unseen."""
-    for f in files:
-        f.unlink(missing_ok=True)
-    for kind in {f.parent for f in files} - {d}:
-        kind.rmdir()
+    """Remove a salt directory's files one by one, then its (now empty) directories, each
+    through a descriptor of its directory opened without following links: a directory
+    swapped for a link since :func:`_salt_dir_files` looked is not followed (the open
+    fails), and a file that appeared meanwhile keeps its directory."""
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW
+    top = os.open(d, flags)
+    try:
+        kinds: dict[str, int] = {}
+        try:
+            for f in files:
+                rel = f.relative_to(d).parts
+                if len(rel) == 1:
+                    _unlink_regular(rel[0], top)
+                else:
+                    if rel[0] not in kinds:
+                        kinds[rel[0]] = os.open(rel[0], flags, dir_fd=top)
+                    _unlink_regular(rel[1], kinds[rel[0]])
+        finally:
+            for fd in kinds.values():
+                os.close(fd)
+        for name in kinds:
+            os.rmdir(name, dir_fd=top)
+    finally:
+        os.close(top)
     d.rmdir()
+
+
+def _unlink_regular(name: str, dir_fd: int) -> None:
+    """Remove the regular file ``name`` of the directory ``dir_fd`` (anything else stays)."""
+    try:
+        st = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except FileNotFoundError:
+        return
+    if stat.S_ISREG(st.st_mode):
+        os.unlink(name, dir_fd=dir_fd)
 
 
 def _content_digest(arrays: dict[str, np.ndarray]) -> str:
