@@ -644,7 +644,7 @@ ORIENTATION_TIE = 0.15
 
 
 def _turn_text(o: Orientation) -> str:
-    return f"rot90 {o.rot90}" + (", then flip lr" if o.flip == "lr" else "")
+    return f"rot90 {o.rot90}" + (" then flip lr" if o.flip == "lr" else "")
 
 
 def check_orientation(intra: np.ndarray, extra: np.ndarray,
@@ -669,8 +669,8 @@ def check_orientation(intra: np.ndarray, extra: np.ndarray,
     # two turns equally: every one as good as the best, within the noise, is named.
     tied = [j for j in np.flatnonzero(bad[s])
             if sc.preference[s, j] >= sc.preference[s, k] - ORIENTATION_TIE]
-    turns = " or ".join(_turn_text(WRONG_ORIENTATIONS[j]) for j in
-                        sorted(tied, key=lambda j: -sc.preference[s, j]))
+    turns = ", or equally after ".join(_turn_text(WRONG_ORIENTATIONS[j]) for j in
+                                       sorted(tied, key=lambda j: -sc.preference[s, j]))
     raise MisorientedImageError(
         f"the {('intra', 'extra')[s]} image looks turned or mirrored: it matches the model's "
         f"predicted footprint (vignetted pupil) best after {turns} (numpy.rot90 quarter "
