@@ -88,6 +88,16 @@ def test_field_outside_the_field_of_view_is_refused():
 
 
 
+def test_a_field_at_the_edge_where_the_design_cannot_be_fitted_is_one_error_line():
+    """2.05 deg off axis is inside LSST's 2.1 deg field of view, but its pupil is so
+    vignetted that batoid cannot fit the design wavefront's 22 terms: exit 2, one line."""
+    proc = run_cli("estimate", INTRA, EXTRA, "--instrument", "lsst", "--field-intra", "1.45",
+                   "1.45", "--field-extra", "1.45", "1.45")
+    assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr
+    assert "the design wavefront cannot be fitted at field (1.45, 1.45) deg" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
 def test_a_whole_frame_given_to_estimate_names_the_frames_path(tmp_path: Path):
     frame = tmp_path / "frame.npy"
     np.save(frame, np.random.default_rng(0).poisson(30.0, (2000, 1000)).astype(float))

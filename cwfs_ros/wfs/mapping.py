@@ -1250,8 +1250,16 @@ def design_zernikes_nm(inst: Instrument, band: str, wavelength_nm: float,
 
     tel = _batoid_telescope(inst.batoid_optic, band)
     wl = wavelength_nm * 1e-9
-    z = batoid.zernike(tel, np.deg2rad(field_deg[0]), np.deg2rad(field_deg[1]), wl,
-                       jmax=jmax, eps=inst.obscuration, nx=128)
+    try:
+        z = batoid.zernike(tel, np.deg2rad(field_deg[0]), np.deg2rad(field_deg[1]), wl,
+                           jmax=jmax, eps=inst.obscuration, nx=128)
+    except RuntimeError as exc:  # batoid: too few unvignetted rays to fit every term
+        r = float(np.hypot(*field_deg))
+        raise ConfigError(
+            f"the design wavefront cannot be fitted at field ({field_deg[0]:.4g}, "
+            f"{field_deg[1]:.4g}) deg, {r:.3f} deg off axis: the pupil is vignetted there "
+            f"beyond what Z1..Z{jmax} can describe (batoid: {exc}). Check the field; a "
+            "wavefront is estimated only where the design one can be fitted") from None
     out[:] = z[1:] * wavelength_nm
     out.setflags(write=False)
     return out
