@@ -287,6 +287,10 @@ def _geometry(inputs: dict[str, PairInput], fields: dict[str, Any],
     return got, sources, defocus
 
 
+# An image this many stamp sizes across is taken for a frame in the estimate's messages.
+FRAME_FACTOR = 4
+
+
 def _frame_hint(inputs: dict[str, Any], inst: Any) -> str:
     """For an image far larger than a donut stamp (a whole frame): what takes frames."""
     rows, cols = (max(np.shape(inputs[s].image)[k] for s in inputs) for k in (0, 1))
@@ -296,10 +300,6 @@ def _frame_hint(inputs: dict[str, Any], inst: Any) -> str:
             f"(about {inst.stamp_size_px} px for {inst.name}); frames with several stars go "
             "to wavefront_node with input_mode frames, or to "
             "cwfs_ros.frames.estimate_corner_frames")
-
-
-# An image this many stamp sizes across is taken for a frame in the estimate's messages.
-FRAME_FACTOR = 4
 
 
 def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,

@@ -439,8 +439,9 @@ class WavefrontPipeline:
         other = "extra" if r.side == "intra" else "intra"
         clock_ns, refused = self._door_refused.get((r.corner, other), (0, None))
         # Only a refusal after this half's exposure can be its partner's (an older one
-        # belongs to an earlier visit; without a clock nothing can be said).
-        if refused is not None and clock_ns >= r.stamp_ns - self.pairing.tolerance_ns > 0:
+        # belongs to an earlier visit; without a clock, 0, nothing can be said).
+        exposed_ns = r.stamp_ns - self.pairing.tolerance_ns
+        if refused is not None and exposed_ns > 0 and clock_ns >= exposed_ns:
             message = (f"{r.message}; the latest {other} image of {r.corner} was refused: "
                        f"{refused.reason}: {refused.message}")
         else:

@@ -148,8 +148,8 @@ class TileStore:
         return removed
 
     def _unusable(self, exc: OSError) -> None:
-        """Record, once, that the root cannot hold a store (a file, no permission, ...):
-        tiles are built every start, nothing else."""
+        """Record, once, that the root cannot hold a store (it, or a directory above it, is
+        a file): tiles are built every start, nothing else."""
         if not self.unusable:
             self.unusable = (f"cannot write or read tiles in {self.root}, every start builds"
                              f" them ({type(exc).__name__}: {exc})")
@@ -160,23 +160,18 @@ class TileStore:
         key or content digest wrong: recorded, :meth:`reject`)."""
         path = self.path(kind, parts)
         try:
-            arrays = _read_tile_file(path)
+            return _verified(_read_tile_file(path), self.key_digest(kind, parts))
         except FileNotFoundError:
             return None
         except NotADirectoryError as exc:  # the root, or a part of it, is a file: no store
             self._unusable(exc)
             return None
-        except TileStoreError as exc:
+        except TileStoreError as exc:  # not a tile file, another tile's, or damaged
             self.reject(kind, parts, str(exc))
             return None
         except Exception as exc:  # noqa: BLE001 - truncated, not an npz (BadZipFile, ...):
             self.reject(kind, parts, f"unreadable ({type(exc).__name__}: {exc})")
             return None  # the caller builds the tile and stores it anew
-        try:
-            return _verified(arrays, self.key_digest(kind, parts))
-        except TileStoreError as exc:
-            self.reject(kind, parts, str(exc))
-            return None
 
     def save(self, kind: str, parts: tuple, arrays: dict[str, np.ndarray]) -> None:
         """Store the tile's arrays (whole or not at all). A store that cannot be written
