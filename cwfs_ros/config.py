@@ -59,10 +59,17 @@ def config_dir() -> Path:
     env = os.environ.get("CWFS_ROS_CONFIG")
     if env:
         return Path(env)
-    src = Path(__file__).resolve().parents[1] / "config"
+    src = _source_config()
     if src.is_dir():
         return src
     return Path(sys.prefix) / "share" / "cwfs_ros" / "config"
+
+
+@lru_cache(maxsize=1)
+def _source_config() -> Path:
+    # Resolved once: resolving the path costs a system call per component, and every
+    # pair estimate reads the configuration (load_algorithm, load_checks, load_instrument).
+    return Path(__file__).resolve().parents[1] / "config"
 
 
 @lru_cache(maxsize=64)

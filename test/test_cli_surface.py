@@ -150,6 +150,24 @@ def test_a_wrong_field_that_stays_plausible_warns_that_the_loop_has_not_settled(
         details[name] = {c["name"]: c for c in out["checks"]}["settled"]["detail"]
     assert "WARNING" not in details["true"]
     assert details["wrong"].startswith("WARNING") and "field angles" in details["wrong"]
+    assert {c["name"]: c for c in out["checks"]}["settled"]["warning"] is True
+
+
+def test_batch_names_the_warnings_of_each_row(tmp_path: Path):
+    """The R34 pair at its true field and told a wrong one: the table says which row's
+    loop was still moving (``warnings``, ``last_update_nm``), not only ``settled``."""
+    from astropy.table import Table
+
+    table = tmp_path / "pairs.csv"
+    rows = [f"{R34[0]},{R34[1]}," + f.replace(" ", ",")
+            for f in ("0.706 1.646 0.706 1.646", "1.176 1.176 1.176 1.176")]
+    table.write_text("intra,extra,field_intra_x,field_intra_y,field_extra_x,field_extra_y\n"
+                     + "\n".join(rows) + "\n")
+    proc = run_cli("batch", table, "--out", tmp_path / "out.ecsv", *FAM_ARGS, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    res = Table.read(tmp_path / "out.ecsv", format="ascii.ecsv")
+    assert [str(w) for w in res["warnings"].filled("")] == ["", "settled"]
+    assert res["last_update_nm"][1] > 1.0 > res["last_update_nm"][0]
 
 
 def test_a_field_whose_vignetting_points_elsewhere_is_refused():
@@ -199,8 +217,66 @@ def test_json_carries_the_provenance_and_every_check():
     checks = {c["name"]: c["outcome"] for c in out["checks"]}
     assert checks == {"field_of_view": "pass", "image_checks": "pass", "swap_check": "off",
                       "caustic": "pass", "plausible": "pass",
-                      "settled": "yes" if out["converged"] else "no"}
+                      "settled": "yes" if out["converged"] else "no",
+                      "text_images": "flipped"}
     assert out["flags"] == [] and out["swap_check"] == "off"
+    assert not any(c["warning"] for c in out["checks"])
+    assert out["inputs"]["intra"]["text_flipped"] is True
+
+
+def _off_axis_pair(tmp_path: Path) -> tuple[list[Path], list[str]]:
+    """A ray-traced pair of the perturbed LSST at (1, 1) deg as .npy files."""
+    from cwfs_ros.sim.render import render_donut
+    from cwfs_ros.sim.telescope import perturbed_telescope
+
+    dof = np.zeros(50)
+    dof[[1, 2]] = (200.0, -150.0)  # M2 decentres (um): a wavefront with astigmatism and coma
+    tel = perturbed_telescope(dof, band="r")
+    rng = np.random.default_rng(3)
+    paths = []
+    for side, dz in (("intra", -1.5), ("extra", 1.5)):
+        paths.append(tmp_path / f"{side}.npy")
+        np.save(paths[-1], render_donut(tel, (1.0, 1.0), dz, wavelength_nm=622.0, npix=160,
+                                        n_photons=1e6, rng=rng))
+    return paths, ["--field-intra", "1", "1", "--field-extra", "1", "1"]
+
+
+def test_text_images_are_said_to_be_flipped_and_a_refusal_names_the_flip(tmp_path: Path):
+    """Arrays in the focal-plane frame written with numpy.savetxt: read with the ZEMAX
+    row order (the default), both halves look mirrored and the refusal says that read as
+    stored they pass; --no-text-flip estimates them as the .npy files, and says nothing."""
+    (intra, extra), field = _off_axis_pair(tmp_path)
+    texts = []
+    for path in (intra, extra):
+        texts.append(path.with_suffix(".txt"))
+        np.savetxt(texts[-1], np.load(path))
+    proc = run_cli("estimate", *texts, *field)
+    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
+    assert "looks turned or mirrored" in proc.stderr
+    assert "read as stored, the pair passes this check" in proc.stderr
+    assert "--no-text-flip" in proc.stderr
+    ref = json.loads(run_cli("estimate", intra, extra, *field, "--json").stdout)
+    proc = run_cli("estimate", *texts, *field, "--no-text-flip", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    np.testing.assert_allclose(out["zernikes_nm"], ref["zernikes_nm"], atol=1e-6)
+    assert "text_images" not in {c["name"] for c in out["checks"]}
+    assert out["inputs"]["intra"]["text_flipped"] is False
+
+
+def test_a_wavelength_of_another_band_is_a_warning():
+    """``--band u --wavelength 622``: the u filter traced at r's wavelength is estimated,
+    with a WARNING check naming the band the wavelength belongs to (not a flag)."""
+    proc = run_cli("estimate", *R22, "--band", "u", "--wavelength", "622", "--field-intra",
+                   "0", "0", "--field-extra", "0", "0", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    band = {c["name"]: c for c in out["checks"]}["band"]
+    assert band["outcome"] == "mismatch" and band["warning"] and not band["flags_estimate"]
+    assert "nearer band r's effective wavelength (622 nm) than band u's" in band["detail"]
+    proc = run_cli("estimate", *R22, *FAM_ARGS, "--field-intra", "0", "0", "--field-extra",
+                   "0", "0", "--json")
+    assert "band" not in {c["name"] for c in json.loads(proc.stdout)["checks"]}
 
 
 def _fits_pair(tmp_path: Path, defocus: tuple[float, float] = (-1.0, 1.0)) -> list[Path]:
@@ -239,6 +315,18 @@ def test_fits_defocus_of_the_wrong_sign_is_refused(tmp_path: Path):
     assert proc.returncode == 2 and "are intra and extra exchanged?" in proc.stderr
 
 
+def test_fits_defocus_out_of_range_names_the_header(tmp_path: Path):
+    """DEFOCUS written in um (-1000 for -1 mm): the error names the file and the keyword,
+    and --defocal-offset overrides the header."""
+    pair = _fits_pair(tmp_path, defocus=(-1000.0, 1000.0))
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert f"intra image {pair[0]}: its FITS header says DEFOCUS = 1000" in proc.stderr
+    assert "micrometres? 1000 um = 1 mm" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial", "--defocal-offset", "1.0")
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_batch_writes_a_table_of_results(tmp_path: Path):
     from astropy.table import Table
 
@@ -257,6 +345,7 @@ def test_batch_writes_a_table_of_results(tmp_path: Path):
         res = Table.read(tmp_path / name,
                          format="ascii.ecsv" if name.endswith("ecsv") else "ascii.csv")
         assert list(res["status"]) == ["ok", "error", "flagged"]
+        assert 0 <= res["last_update_nm"][0] < 1.0 and np.isnan(res["last_update_nm"][1])
         assert 180.0 < res["Z7_nm"][0] < 200.0
         assert "not an image" in res["error"][1]
         assert np.isnan(res["Z7_nm"][2]) and "caustic" in res["flags"][2]

@@ -12,7 +12,9 @@ Input: a CSV or ECSV table (astropy reads either), one pair per row.  Columns:
 Output (``--out``; ECSV when it ends in ``.ecsv``, else CSV): the input columns, then
 ``status`` (ok / flagged / error), ``flags``, ``error``, the instrument, band, wavelength,
 solver and defocus used, the field of the estimate, ``Z4_nm`` ... ``Z22_nm``, ``caustic``,
-``settled``, ``swap_check`` and ``iterations``.  A flagged row's Zernikes are NaN unless
+``settled``, ``last_update_nm`` (the outer loop's last update), ``swap_check``,
+``iterations`` and ``warnings`` (the checks whose outcome is a WARNING, such as ``settled``
+when the loop was still moving by more than 1 nm).  A flagged row's Zernikes are NaN unless
 ``--allow-flagged``.  The ECSV header carries the software versions and the options.
 
 Exit status: 0 every row estimated and none flagged; 2 some row could not be estimated (its
@@ -87,8 +89,10 @@ def _row_out(run: Any, allow_flagged: bool) -> dict[str, Any]:
         "field_x_deg": r.field_deg[0], "field_y_deg": r.field_deg[1]}
     for j, z in zip(NOLL, r.zernikes_nm, strict=True):
         out[f"Z{j}_nm"] = float("nan") if hide else float(z)
-    out.update(caustic=bool(r.caustic), settled=bool(r.converged), swap_check=r.swap_check,
-               iterations=int(r.iterations))
+    last = float(r.residual_rms_nm[-1]) if len(r.residual_rms_nm) else float("nan")
+    out.update(caustic=bool(r.caustic), settled=bool(r.converged), last_update_nm=last,
+               swap_check=r.swap_check, iterations=int(r.iterations),
+               warnings=" ".join(c.name for c in run.checks if c.warning))
     return out
 
 
@@ -98,7 +102,8 @@ def _error_row(message: str) -> dict[str, Any]:
                            "solver": "", "defocal_offset_used_mm": float("nan"),
                            "field_x_deg": float("nan"), "field_y_deg": float("nan")}
     out.update({f"Z{j}_nm": float("nan") for j in NOLL})
-    out.update(caustic=False, settled=False, swap_check="", iterations=0)
+    out.update(caustic=False, settled=False, last_update_nm=float("nan"), swap_check="",
+               iterations=0, warnings="")
     return out
 
 

@@ -25,7 +25,9 @@ from __future__ import annotations
 import hashlib
 import math
 import platform
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -66,11 +68,14 @@ class PairInput:
     image: np.ndarray
     field_deg: tuple[float, float] | None = None
     defocus_mm: float | None = None
+    #: A text image whose rows were reversed on reading (the ZEMAX set's storage order).
+    text_flipped: bool = False
 
     def describe(self) -> dict[str, Any]:
         data = self.path.read_bytes()
         return {"path": str(self.path), "bytes": len(data),
-                "sha256": hashlib.sha256(data).hexdigest(), "shape": list(self.image.shape)}
+                "sha256": hashlib.sha256(data).hexdigest(), "shape": list(self.image.shape),
+                "text_flipped": self.text_flipped}
 
 
 def _not_an_image(path: Path, role: str, reason: str) -> Exception:
@@ -141,23 +146,43 @@ def read_pair_image(path: str | Path, role: str, *, text_flip: bool = True) -> P
         raise ImageError(f"{role} image {path}: its FITS header says {FITS_KEYS['defocus']} "
                          f"= {dz:g} mm, an {'intra' if dz < 0 else 'extra'}-focal image "
                          "(are intra and extra exchanged?)")
-    return PairInput(p, image, fld, None if dz is None else abs(dz))
+    text = not is_fits and not name.endswith(".npy")
+    return PairInput(p, image, fld, None if dz is None else abs(dz),
+                     text_flipped=text and text_flip)
+
+
+def _check_header_defocus(path: Path, role: str, dz: float) -> None:
+    """ConfigError naming the header when its DEFOCUS is no defocal offset in mm (the
+    estimate takes ``0 < |l| < 100`` mm)."""
+    from cwfs_ros.wfs.instrument import MAX_DEFOCAL_OFFSET_MM
+
+    if np.isfinite(dz) and 0 < abs(dz) < MAX_DEFOCAL_OFFSET_MM:
+        return
+    hint = ""
+    if np.isfinite(dz) and abs(dz) >= 1e2:
+        hint = f" (micrometres? {dz:g} um = {dz * 1e-3:g} mm)"
+    raise ConfigError(f"{role} image {path}: its FITS header says {FITS_KEYS['defocus']} = "
+                      f"{dz:g}, outside 0 < |defocus| < {MAX_DEFOCAL_OFFSET_MM:g} mm{hint}; give "
+                      "--defocal-offset (mm) or mend the header")
 
 
 # ------------------------------------------------------------------------------ checks
 @dataclass
 class Check:
     """One check of an estimate: ``outcome`` is pass / fail / off / a word of the check's
-    own (swap: confirmed / inconclusive); ``flags`` a fail that makes it unusable."""
+    own (swap: confirmed / inconclusive); ``flags`` a fail that makes it unusable;
+    ``warning`` an outcome to look into before using the numbers, which does not flag them
+    (the detail starts with WARNING)."""
 
     name: str
     outcome: str
     detail: str
     flags: bool = field(default=False)
+    warning: bool = field(default=False)
 
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "outcome": self.outcome, "detail": self.detail,
-                "flags_estimate": self.flags}
+                "flags_estimate": self.flags, "warning": self.warning}
 
 
 def plausible_limit_nm(inst: Any, defocal_offset_mm: float) -> float:
@@ -209,7 +234,7 @@ def _settled(result: Any, last_nm: float) -> Check:
         return Check("settled", "no", f"WARNING: {what}, still moving by more than "
                      f"{UNSETTLED_WARN_NM:g} nm: the model does not fit these images. Check "
                      "the field angles, the defocal offset and which image is intra-focal; "
-                     "do not use these numbers until it settles")
+                     "do not use these numbers until it settles", warning=True)
     return Check("settled", "no", f"{what}: near its fixed point, not an error")
 
 
@@ -272,19 +297,16 @@ def _geometry(inputs: dict[str, PairInput], fields: dict[str, Any],
             raise ConfigError(f"no field for the {role} image: give --field-{role} X Y, or "
                               f"{FITS_KEYS['field_x']}/{FITS_KEYS['field_y']} (deg) in its "
                               "FITS header")
-    headers = {pi.defocus_mm for pi in inputs.values() if pi.defocus_mm is not None}
     if defocal_offset_mm is not None:
-        defocus = float(defocal_offset_mm)
-    elif len(headers) == 1:
-        defocus = headers.pop()
-    elif headers:
-        from cwfs_ros.errors import ConfigError
-
+        return got, sources, float(defocal_offset_mm)
+    for role, pi in inputs.items():
+        if pi.defocus_mm is not None:  # the header's value is used: say which is wrong
+            _check_header_defocus(pi.path, role, pi.defocus_mm)
+    headers = {pi.defocus_mm for pi in inputs.values() if pi.defocus_mm is not None}
+    if len(headers) > 1:
         raise ConfigError(f"the FITS headers disagree on the defocal offset: {sorted(headers)}"
                           " mm; give --defocal-offset")
-    else:
-        defocus = inst.defocal_offset_mm
-    return got, sources, defocus
+    return got, sources, headers.pop() if headers else inst.defocal_offset_mm
 
 
 # An image this many stamp sizes across is taken for a frame in the estimate's messages.
@@ -302,6 +324,51 @@ def _frame_hint(inputs: dict[str, Any], inst: Any) -> str:
             "cwfs_ros.frames.estimate_corner_frames")
 
 
+def _text_hint(exc: Exception, inputs: dict[str, PairInput],
+               estimate: Callable[[np.ndarray, np.ndarray], Any]) -> str:
+    """For a pair of text images read with their rows reversed and refused as turned,
+    mirrored or exchanged: whether the same images read as stored pass (one more estimate,
+    on this failure path only)."""
+    from cwfs_ros.errors import MisorientedImageError, SwappedImagesError
+
+    flipped = [s for s in inputs if inputs[s].text_flipped]
+    if not flipped or not isinstance(exc, (MisorientedImageError, SwappedImagesError)):
+        return ""
+    try:
+        estimate(*(inputs[s].image[::-1] if inputs[s].text_flipped else inputs[s].image
+                   for s in ("intra", "extra")))
+    except CwfsError:
+        return ""
+    return (f"the text image{'s were' if len(flipped) > 1 else ' was'} read with the rows "
+            "reversed, as the ZEMAX set stores them; read as stored, the pair passes this "
+            "check: text written from arrays already in the focal-plane frame [row=y, "
+            "col=x] (numpy savetxt, say) is read so with --no-text-flip, while ZEMAX images "
+            "point to a wrong field")
+
+
+def _input_notes(inputs: dict[str, PairInput], inst: Any, band: str,
+                 wavelength_nm: float | None) -> list[Check]:
+    """Checks on how the inputs were read: text images' row order, and a wavelength given
+    that lies nearer another band's effective wavelength than the band's (a WARNING: the
+    optics are the band's filter, traced at that wavelength)."""
+    out = []
+    flipped = [s for s in inputs if inputs[s].text_flipped]
+    if flipped:
+        out.append(Check("text_images", "flipped", f"{' and '.join(flipped)} read from text "
+                         "with the rows reversed, as the ZEMAX set stores them "
+                         "(--no-text-flip reads them as stored)"))
+    if wavelength_nm is not None and band in inst.band_wavelength_nm:
+        effective = inst.band_wavelength_nm
+        nearest = min(effective, key=lambda b: abs(effective[b] - float(wavelength_nm)))
+        if nearest != band:
+            out.append(Check(
+                "band", "mismatch", f"WARNING: {float(wavelength_nm):g} nm is nearer band "
+                f"{nearest}'s effective wavelength ({effective[nearest]:g} nm) than band "
+                f"{band}'s ({effective[band]:g} nm); the optics are band {band}'s, traced at "
+                f"{float(wavelength_nm):g} nm. Check --band", warning=True))
+    return out
+
+
 def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
              field_extra: Any = None, instrument: str = "lsst", band: str | None = None,
              wavelength_nm: float | None = None, defocal_offset_mm: float | None = None,
@@ -316,18 +383,19 @@ def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
     fields, sources, defocus = _geometry(inputs, {"intra": field_intra, "extra": field_extra},
                                          defocal_offset_mm, inst)
     band = band or inst.default_band
+    estimate = partial(estimate_wavefront, field_intra_deg=fields["intra"],
+                       field_extra_deg=fields["extra"], instrument=inst, band=band,
+                       wavelength_nm=wavelength_nm, defocal_offset_mm=defocus, solver=solver,
+                       seeing_fwhm_arcsec=seeing_fwhm_arcsec, **algorithm)
     try:
-        result = estimate_wavefront(
-            inputs["intra"].image, inputs["extra"].image, field_intra_deg=fields["intra"],
-            field_extra_deg=fields["extra"], instrument=inst, band=band,
-            wavelength_nm=wavelength_nm, defocal_offset_mm=defocus, solver=solver,
-            seeing_fwhm_arcsec=seeing_fwhm_arcsec, **algorithm)
+        result = estimate(inputs["intra"].image, inputs["extra"].image)
     except CwfsError as exc:
-        hint = _frame_hint(inputs, inst)
+        hint = _frame_hint(inputs, inst) or _text_hint(exc, inputs, estimate)
         if not hint or isinstance(exc, ConfigError):
             raise
         raise type(exc)(f"{exc} ({hint})") from exc
     checks = assess(result, inst, defocus)
+    checks += _input_notes(inputs, inst, band, wavelength_nm)
     record = provenance(inputs, instrument=inst, defocal_offset_mm=defocus,
                         seeing_fwhm_arcsec=seeing_fwhm_arcsec, field_sources=sources,
                         checks=checks)

@@ -19,7 +19,7 @@ from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
 
 __all__ = ["Instrument", "load_instrument", "available_instruments", "MAPPINGS",
-           "WAVELENGTH_RANGE_NM", "checked_wavelength_nm"]
+           "WAVELENGTH_RANGE_NM", "checked_wavelength_nm", "MAX_DEFOCAL_OFFSET_MM"]
 
 MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
 
@@ -27,6 +27,8 @@ MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
 # Wavelengths a curvature sensor works in (nm): near UV to near IR. Outside, the value is in
 # another unit (0.622 is um, 6.22e-7 is m) or a typo.
 WAVELENGTH_RANGE_NM = (250.0, 2500.0)
+#: The estimate takes a |defocal offset| in (0, this) mm.
+MAX_DEFOCAL_OFFSET_MM = 100.0
 
 
 def checked_wavelength_nm(value: float) -> float:
