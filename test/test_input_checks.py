@@ -348,3 +348,26 @@ def test_donut_centroid_takes_all_the_light_of_an_aberrated_donut() -> None:
     assert abs(d.centroid_xy[0] - truth[0]) < 0.01 and abs(d.centroid_xy[1] - truth[1]) < 0.01
     assert truth[0] - 128.0 > 1.0  # the tail moves the centroid: the check has teeth
     assert abs(d.flux - img.sum()) / img.sum() < 1e-9
+
+
+# -- a donut larger than the geometry gives --------------------------------------------------
+
+def test_a_stamp_upsampled_twice_is_refused_as_larger_than_expected() -> None:
+    """Each pixel of R00's stamps repeated 2 x 2 (a 320-px stamp at half the pixel size):
+    the donut is twice the radius the instrument and defocus give, its "sky" is measured on
+    the donut, and the refusal says where the light is rather than only "no flux"."""
+    e_in, e_ex = _expected("R00", True)
+    rng = np.random.default_rng(5)
+    up = [np.kron(_noisy(e, 1e6, 50, rng), np.ones((2, 2))) / 4 for e in (e_in, e_ex)]
+    with pytest.raises(ImageError) as err:
+        _estimate(*up)
+    msg = str(err.value)
+    assert msg.startswith("intra image has no flux above its background")
+    share = int(re.search(r"\((\d+)% of its light lies beyond the donut's expected radius",
+                          msg).group(1))
+    assert share > 80 and "resampled" in msg
+    # A stamp of sky alone is refused without that reason: its light is nowhere.
+    sky = rng.normal(0.0, 7.0, e_in.shape)
+    with pytest.raises(ImageError) as err:
+        _estimate(sky, _noisy(e_ex, 1e6, 50, rng))
+    assert "expected radius" not in str(err.value), str(err.value)

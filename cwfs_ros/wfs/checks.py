@@ -571,8 +571,9 @@ def check_not_swapped(intra: np.ndarray, extra: np.ndarray,
             f"{p_v:+.2f} at {z_v:+.1f} sigma; +1 = as given, -1 = exchanged). Check which "
             "image is intra-focal (negative detector offset), that neither camera "
             "delivers its stamps turned by 180 degrees, and that the images are this "
-            "corner's: the diagonally opposite corner's (R00 and R44, R04 and R40) are this "
-            "corner's turned by 180 degrees, so all three look alike. Past the "
+            "corner's and the field given is theirs: the diagonally opposite corner's (R00 "
+            "and R44, R04 and R40), or a field of the opposite sign, are this corner's "
+            "turned by 180 degrees, so all four look alike. Past the "
             "geometric limit of curvature sensing (several um of wavefront at a corner, "
             "validation Fig. 9) the donuts match neither footprint and are refused the same "
             "way")

@@ -9,7 +9,7 @@ flux inside the computation region is divided by the pupil area the image illumi
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -163,10 +163,14 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
                              img[2:-2, -2:].ravel()])
     bg, sig = _robust_level(border)
     ys, xs = _pixel_axes(img.shape)
-    peak, centre = _thresholded_centroid(img - bg, ys, xs, name)
-    sky, bg, sig = _sky_outside(img, ys, xs, centre, outer_radius_px, border, (bg, sig))
+    peak, first = _thresholded_centroid(img - bg, ys, xs, name)
+    oversized = partial(_oversized, img, bg, ys, xs, first, outer_radius_px)
+    sky, bg, sig = _sky_outside(img, ys, xs, first, outer_radius_px, border, (bg, sig))
     work = img - bg
-    centre, r_win = _window_centroid(work, ys, xs, centre, outer_radius_px, sig, name)
+    try:
+        centre, r_win = _window_centroid(work, ys, xs, first, outer_radius_px, sig, name)
+    except FlatImageError as exc:
+        raise FlatImageError(f"{exc}{oversized()}") from None
     cx, cy = centre
     r2 = _radius2(ys, xs, cx, cy)
     inside = r2 <= r_win * r_win
@@ -187,11 +191,39 @@ def prepare_donut(image: np.ndarray, *, name: str, outer_radius_px: float,
             f"{name} image holds no donut: flux {flux:.4g} at S/N {snr:.1f} "
             f"(minimum {MIN_SNR:g}) around its light's centroid; a stamp holds one donut "
             "(frames with several stars: cwfs_ros.frames.estimate_corner_frames)"
+            + oversized()
         )
     body = work[body_mask]
     _check_edges(work, centre, outer_radius_px, margin_px,
                  float(np.median(body)) if body.size else peak, name)
     return PreparedDonut(work, bg, sig, (cx, cy), flux, float(snr))
+
+
+# The fraction of a refused stamp's light (above its border's level) beyond the expected
+# donut from which the refusal says the donut is larger than expected: a neighbour's light
+# or a sky gradient stays well below it, a donut twice its size puts nearly all its light
+# there.
+_OVERSIZED_FRACTION = 0.5
+
+
+def _oversized(img: np.ndarray, border_level: float, ys: np.ndarray, xs: np.ndarray,
+               centre: tuple[float, float], outer_radius_px: float) -> str:
+    """For a stamp refused as holding no flux: the reason when most of its light (above
+    the border's level) lies beyond the donut's expected radius around the first centroid
+    (a donut larger than the geometry predicts, whose "sky" was measured on the donut),
+    else ""."""
+    above_border = img - border_level
+    total = float(above_border.sum())
+    beyond = _radius2(ys, xs, *centre) > (outer_radius_px + 2 * _SPILL_PX) ** 2
+    if not total > 0:
+        return ""
+    frac = float(above_border[beyond].sum()) / total
+    if frac <= _OVERSIZED_FRACTION:
+        return ""
+    return (f" ({frac:.0%} of its light lies beyond the donut's expected radius of "
+            f"{outer_radius_px:.0f} px: the donut is larger than this instrument and defocal "
+            "offset give. A stamp resampled to other pixels than the instrument's, or a "
+            "wrong defocal offset or instrument?)")
 
 
 def _checked_stamp(image: np.ndarray, name: str, outer_radius_px: float,
