@@ -165,6 +165,20 @@ def test_plot_result_without_iterations(tmp_path: Path) -> None:
     assert out == tmp_path / "empty.png" and out.stat().st_size > 0
 
 
+def test_pair_demo_recentres_a_donut_that_its_chief_ray_puts_off_the_stamp(tmp_path: Path
+                                                                          ) -> None:
+    """Seed 14 draws 2 um of wavefront (M2 decentred by 390 um), which moves the donut off
+    the stamp centred on its chief ray: the pair is rendered again centred on its light,
+    as a pipeline cuts stamps, and estimated."""
+    proc = run_cli("pair-demo", "--out", tmp_path, "--seed", "14")
+    assert proc.returncode == 0, proc.stderr
+    assert "donut is cut by the stamp edge" in proc.stdout
+    assert "rendered again, each stamp centred on its donut's light" in proc.stdout
+    rms = float(next(ln for ln in proc.stdout.splitlines()
+                     if ln.startswith("RMS error")).split()[2])
+    assert rms < 40.0, proc.stdout
+
+
 def test_pair_demo_ray_traces_estimates_and_reports(tmp_path: Path) -> None:
     """A perturbed LSST pair, its estimate against truth, a figure."""
     proc = run_cli("pair-demo", "--out", tmp_path, "--photons", "4e5", "--seed", "2")
