@@ -44,46 +44,58 @@ CORNERS = ("R00", "R04", "R40", "R44")
 SIDES = ("intra", "extra")
 
 
-def render(cache: Path, visits: int, a: argparse.Namespace) -> list[dict[str, np.ndarray]]:
-    """The visits' frames, keyed ``R00_intra`` ...; rendered on first use into ``cache``."""
-    cache.mkdir(parents=True, exist_ok=True)
-    todo = [k for k in range(visits) if not (cache / f"visit{k:02d}.npz").exists()]
-    if todo:
-        from cwfs_ros.config import load_sensor_geometry
-        from cwfs_ros.sim.perturbation import stroke_perturbation
-        from cwfs_ros.sim.telescope import perturbed_telescope
-        from cwfs_ros.sim.visit import FrameSpec, make_render_pool, render_frames
+def _visit_specs(k: int, a: argparse.Namespace) -> list:
+    """Visit ``k``'s frame specifications, keyed ``R00_intra`` ...: windows of ``--rows`` x
+    ``--cols`` along their half-chips, as camera_sim_node renders them."""
+    from dataclasses import replace
 
-        geometry = load_sensor_geometry()
-        tel = perturbed_telescope(stroke_perturbation("mixed", a.seed, 500.0), band="r")
-        pool = make_render_pool(a.render_workers)
-        try:
-            for k in todo:
+    from cwfs_ros.sim.visit import FrameScene, frame_specs
+
+    scene = FrameScene((a.rows, a.cols), (a.stars[0], a.stars[1]), (2e5, 1e6))
+    specs = frame_specs(CORNERS, scene, np.random.default_rng(a.seed + 1000 * k))
+    return [replace(s, key=f"{s.key[0]}_{s.key[1]}") for s in specs]
+
+
+def _cached(path: Path) -> dict[str, np.ndarray]:
+    if not path.exists():
+        return {}
+    with np.load(path) as z:
+        return {key: z[key] for key in z.files}
+
+
+def render(cache: Path, visits: int, a: argparse.Namespace) -> list[dict[str, np.ndarray]]:
+    """The visits' frames, keyed ``R00_intra`` ...; rendered on first use into ``cache``.
+    A cached frame of another shape than its specification is rendered again (the others
+    are kept: each frame has its own seed)."""
+    cache.mkdir(parents=True, exist_ok=True)
+    out, pool = [], None
+    try:
+        for k in range(visits):
+            path = cache / f"visit{k:02d}.npz"
+            have = _cached(path)
+            todo = [s for s in _visit_specs(k, a)
+                    if have.get(s.key, np.empty(0)).shape != s.shape_px]
+            if todo:
+                from cwfs_ros.sim.perturbation import stroke_perturbation
+                from cwfs_ros.sim.telescope import perturbed_telescope
+                from cwfs_ros.sim.visit import make_render_pool, render_frames
+
+                if pool is None:
+                    pool = make_render_pool(a.render_workers)
+                    tel = perturbed_telescope(stroke_perturbation("mixed", a.seed, 500.0),
+                                              band="r")
                 t0 = time.perf_counter()
-                rng = np.random.default_rng(a.seed + 1000 * k)
-                specs = []
-                for c in CORNERS:
-                    g = geometry[c]
-                    for side, fld, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
-                                          ("extra", g.extra_field_deg, g.extra_offset_mm)):
-                        specs.append(FrameSpec(
-                            f"{c}_{side}", tuple(fld), float(dz), (a.rows, a.cols),
-                            (a.stars[0], a.stars[1]), (2e5, 1e6), True, True,
-                            int(rng.integers(2**62)), 0.0))
-                frames = render_frames(tel, specs, band="r", wavelength_nm=622.0,
+                frames = render_frames(tel, todo, band="r", wavelength_nm=622.0,
                                        sky_per_pixel=50.0, executor=pool)
-                np.savez(cache / f"visit{k:02d}.npz",
-                         **{key: f.image.astype(np.float32) for key, f in frames.items()})
-                n = [len(f.stars) for f in frames.values()]
-                print(f"rendered visit {k}: {sum(n)} stars in {time.perf_counter() - t0:.0f} s",
-                      flush=True)
-        finally:
-            if pool is not None:
-                pool.shutdown()
-    out = []
-    for k in range(visits):
-        with np.load(cache / f"visit{k:02d}.npz") as z:
-            out.append({key: z[key] for key in z.files})
+                have.update({key: f.image.astype(np.float32) for key, f in frames.items()})
+                np.savez(path, **have)
+                n = sum(len(f.stars) for f in frames.values())
+                print(f"rendered visit {k}: {len(todo)} frames, {n} stars in "
+                      f"{time.perf_counter() - t0:.0f} s", flush=True)
+            out.append(have)
+    finally:
+        if pool is not None:
+            pool.shutdown()
     return out
 
 

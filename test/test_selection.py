@@ -13,6 +13,7 @@ import batoid
 import numpy as np
 import pytest
 
+from cwfs_ros.errors import FrameSizeError
 from cwfs_ros.frames.combination import (
     CombinationConfig,
     combine_pairs,
@@ -493,6 +494,38 @@ def test_frames_that_cannot_be_placed_on_their_half_chips_are_refused():
     res = run_corner_frame_job(CornerFrameJob("R00", 5, window, np.ascontiguousarray(window.T)))
     assert not res.valid and res.reason == "frame_size", res.status
     assert "extra frame is 1000x2000" in res.status and "long side lies across" in res.status
+
+
+def test_the_simulator_frames_of_every_corner_are_windows_wavefront_node_takes():
+    """camera_sim_node's frames with its shipped frame_rows x frame_cols (config/params.yaml),
+    at every corner: each lies along its half-chip (R04's and R40's half-chips are R00's
+    turned by 90 degrees), so the frame-size check that refuses transposed readouts takes
+    all of them, and a frame of R00's shape at R04 is refused."""
+    import yaml
+
+    from cwfs_ros.config import config_dir
+    from cwfs_ros.frames.selection import frame_window
+    from cwfs_ros.layout import CORNERS
+    from cwfs_ros.sim.visit import FrameScene, frame_specs
+
+    params = yaml.safe_load((config_dir() / "params.yaml").read_text())
+    sim = params["camera_sim_node"]["ros__parameters"]
+    size = (int(sim["frame_rows"]), int(sim["frame_cols"]))
+    assert size[0] != size[1]  # else the orientation is not exercised
+    specs = {s.key: s for s in frame_specs(CORNERS, FrameScene(size, (3, 6), (2e5, 1e6)),
+                                           np.random.default_rng(0))}
+    halves = load_half_chips()
+    shapes = {}
+    for c in CORNERS:
+        frames = [np.zeros(specs[(c, side)].shape_px, np.float32) for side in ("intra", "extra")]
+        note = frame_window(*frames, halves[c]["intra"], halves[c]["extra"])
+        assert "windows" in note, (c, note)
+        shapes[c] = specs[(c, "intra")].shape_px
+    assert shapes["R00"] == shapes["R44"] == size
+    assert shapes["R04"] == shapes["R40"] == size[::-1]
+    frames = [np.zeros(size, np.float32)] * 2
+    with pytest.raises(FrameSizeError, match="long side lies across"):
+        frame_window(*frames, halves["R04"]["intra"], halves["R04"]["extra"])
 
 
 def test_frame_job_never_raises():

@@ -70,6 +70,19 @@ class HalfChip:
     reference_px: tuple[float, float] | None
     mid_deg: tuple[float, float]
 
+    def crosswise(self, shape_px: tuple[int, int]) -> bool:
+        """Whether a window of ``shape_px`` (rows, cols) has its long side across this
+        half-chip's long side: not a window of it as read out (a transposed or turned
+        readout)."""
+        (rows, cols), (half_rows, half_cols) = shape_px, self.shape_px
+        return (half_rows > half_cols and rows < cols) or (half_rows < half_cols and rows > cols)
+
+    def window(self, shape_px: tuple[int, int]) -> tuple[int, int]:
+        """A window of ``shape_px`` (rows, cols) laid along this half-chip: turned by 90
+        degrees when it lies across it, so one frame size serves the half-chips of every
+        corner (R04 and R40 are R00's turned by 90 degrees)."""
+        return (shape_px[1], shape_px[0]) if self.crosswise(shape_px) else tuple(shape_px)
+
     def reference(self, shape_px: tuple[int, int] | None = None) -> tuple[float, float]:
         """Reference pixel (col, row) for a frame of ``shape_px`` (default: the configured)."""
         if self.reference_px is not None:

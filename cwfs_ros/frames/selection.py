@@ -624,7 +624,7 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
                 f"larger than the {half.shape_px[0]}x{half.shape_px[1]} {half.corner} "
                 f"{half.sensor} half-chip of the sensor file: a transposed or turned "
                 f"readout, or the wrong sensor file")
-        if _crosswise(shapes[name], half.shape_px):
+        if half.crosswise(shapes[name]):
             raise FrameSizeError(
                 f"the {name} frame is {rows}x{cols} (rows x cols, focal-plane orientation): "
                 f"its long side lies across that of the {half.shape_px[0]}x"
@@ -644,12 +644,6 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
     return (f"{shapes['intra'][0]}x{shapes['intra'][1]} windows of the "
             f"{intra.shape_px[0]}x{intra.shape_px[1]} half-chips, taken as centred on their "
             f"reference pixels")
-
-
-def _crosswise(shape_px: tuple[int, int], half_px: tuple[int, int]) -> bool:
-    """Whether a window's long side lies across its half-chip's long side (rows x cols)."""
-    (rows, cols), (half_rows, half_cols) = shape_px, half_px
-    return (half_rows > half_cols and rows < cols) or (half_rows < half_cols and rows > cols)
 
 
 def _cap_note(det_in: list[DetectedDonut], det_ex: list[DetectedDonut],

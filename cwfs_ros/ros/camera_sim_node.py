@@ -80,7 +80,8 @@ from cwfs_ros.sim.perturbation import RIGID_SCALE, wavefront_error_nm
 from cwfs_ros.sim.telescope import BANDS
 from cwfs_ros.sim.visit import (
     DonutSpec,
-    FrameSpec,
+    FrameScene,
+    frame_specs,
     make_render_pool,
     render_frames,
     render_visit,
@@ -479,18 +480,13 @@ class CameraSimNode(NodeBasics, Node):
         """The half-chip frames of a visit, two per corner of ``corners``, several stars each
         (sky included)."""
         p = self._param
-        rows, cols = int(p("frame_rows")), int(p("frame_cols"))
-        nmin, nmax = int(p("frame_stars_min")), int(p("frame_stars_max"))
-        lo, hi = float(p("frame_flux_min")), float(p("frame_flux_max"))
-        specs = []
-        for c in self.corners:
-            g = self.geometry[c]
-            for side, field, dz in (("intra", g.intra_field_deg, g.intra_offset_mm),
-                                    ("extra", g.extra_field_deg, g.extra_offset_mm)):
-                specs.append(FrameSpec((c, side), tuple(field), float(dz), (rows, cols),
-                                       (nmin, max(nmin, nmax)), (lo, max(lo, hi)),
-                                       bool(p("frame_blend")), bool(p("frame_faint")),
-                                       int(self._rng.integers(2**62)), float(angle_deg)))
+        scene = FrameScene((int(p("frame_rows")), int(p("frame_cols"))),
+                           (int(p("frame_stars_min")),
+                            max(int(p("frame_stars_min")), int(p("frame_stars_max")))),
+                           (float(p("frame_flux_min")),
+                            max(float(p("frame_flux_min")), float(p("frame_flux_max")))),
+                           bool(p("frame_blend")), bool(p("frame_faint")))
+        specs = frame_specs(self.corners, scene, self._rng, angle_deg)
         frames = render_frames(tel, specs, band=self.band, wavelength_nm=self.wavelength_nm,
                                sky_per_pixel=float(p("sky_per_pixel")),
                                read_noise_e=float(p("read_noise_e")),
@@ -619,9 +615,12 @@ def _declare_frame_parameters(d: Declare) -> None:
         "Publish half-chip frames with several stars (random positions and brightness, "
         "a blended pair, a too-faint star) instead of one-donut stamps; wavefront_node "
         "then selects, pairs and combines the donuts.", **ro))
-    d("frame_rows", describe("Frame rows [px] (frames mode).",
-                             int_range=(200, 8192), **ro))
-    d("frame_cols", describe("Frame columns [px] (frames mode).",
+    d("frame_rows", describe(
+        "Frame rows [px] (frames mode), focal-plane orientation, of the half-chips whose "
+        "long side runs along the rows (R00, R44); the frames of those turned by 90 degrees "
+        "(R04, R40) are frame_cols rows by frame_rows columns, along their half-chip as a "
+        "window is read out.", int_range=(200, 8192), **ro))
+    d("frame_cols", describe("Frame columns [px] (frames mode); see frame_rows.",
                              int_range=(200, 8192), **ro))
     d("frame_stars_min", describe("Fewest isolated stars per frame.",
                                   int_range=(0, 50), **ro))

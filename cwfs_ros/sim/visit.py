@@ -18,9 +18,11 @@ from dataclasses import dataclass
 import batoid
 import numpy as np
 
+from cwfs_ros.layout import SIDES
 from cwfs_ros.sim.render import RenderSettings, render_donut
 
-__all__ = ["DonutSpec", "FrameSpec", "make_render_pool", "render_frames", "render_visit"]
+__all__ = ["DonutSpec", "FrameSpec", "FrameScene", "frame_specs", "make_render_pool",
+           "render_frames", "render_visit"]
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,45 @@ class FrameSpec:
     faint: bool
     seed: int
     rotator_angle_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class FrameScene:
+    """What every frame of a visit holds (camera_sim_node's frame parameters).
+
+    Attributes:
+        size_px: (rows, cols) of the frames of half-chips whose long side runs along the
+            rows; the others' frames are turned by 90 degrees (:meth:`HalfChip.window`).
+        n_stars, flux_range, blend, faint: as :class:`FrameSpec`.
+    """
+
+    size_px: tuple[int, int]
+    n_stars: tuple[int, int]
+    flux_range: tuple[float, float]
+    blend: bool = True
+    faint: bool = True
+
+
+def frame_specs(corners: Sequence[str], scene: FrameScene, rng: np.random.Generator,
+                rotator_angle_deg: float = 0.0, sensor_path: str | None = None
+                ) -> list[FrameSpec]:
+    """The two half-chip frames of each corner of a visit, keyed ``(corner, side)``: each a
+    window of ``scene.size_px`` laid along its half-chip, as a camera reads a window out
+    (R04 and R40 are R00's turned by 90 degrees; wavefront_node refuses a window across
+    its half-chip), at the half-chip's field point and offset of the sensor file.  One seed
+    per frame is drawn from ``rng``, in order."""
+    from cwfs_ros.frames.field_position import load_half_chips
+
+    halves = load_half_chips(sensor_path)
+    specs = []
+    for c in corners:
+        for side in SIDES:
+            h = halves[c][side]
+            specs.append(FrameSpec((c, side), tuple(h.field_deg), float(h.detector_offset_mm),
+                                   h.window(scene.size_px), scene.n_stars, scene.flux_range,
+                                   scene.blend, scene.faint, int(rng.integers(2**62)),
+                                   float(rotator_angle_deg)))
+    return specs
 
 
 def _render_frame(telescope: batoid.Optic, spec: FrameSpec, band: str, wavelength_nm: float,
