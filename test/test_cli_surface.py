@@ -65,6 +65,8 @@ def test_result_repr_is_a_short_summary():
 def test_text_output_says_settled_and_swap_check():
     proc = run_cli("estimate", INTRA, EXTRA, *GEOMETRY)
     assert proc.returncode == 0
+    assert ("inputs: field intra (0, 0) deg (command line), extra (0, 0) deg (command line); "
+            "defocal offset 1 mm (command line)") in proc.stdout
     assert "converged" not in proc.stdout
     status = next(ln for ln in proc.stdout.splitlines() if ln.startswith("caustic:"))
     assert "settled: " in status and "swap check: off" in status
@@ -262,6 +264,21 @@ def test_text_images_are_said_to_be_flipped_and_a_refusal_names_the_flip(tmp_pat
     np.testing.assert_allclose(out["zernikes_nm"], ref["zernikes_nm"], atol=1e-6)
     assert "text_images" not in {c["name"] for c in out["checks"]}
     assert out["inputs"]["intra"]["text_flipped"] is False
+    # On axis no check can see the flip: text that does not look like a ZEMAX export,
+    # flipped by default, is a WARNING (the ZEMAX pairs' is not: test above).
+    from cwfs_ros.sim.render import render_donut
+    from cwfs_ros.sim.telescope import perturbed_telescope
+
+    tel, rng, axis = perturbed_telescope(np.zeros(50), band="r"), np.random.default_rng(4), []
+    for side, dz in (("intra", -1.5), ("extra", 1.5)):
+        axis.append(tmp_path / f"axis_{side}.txt")
+        np.savetxt(axis[-1], render_donut(tel, (0.0, 0.0), dz, wavelength_nm=622.0, npix=160,
+                                          n_photons=5e5, rng=rng))
+    proc = run_cli("estimate", *axis, "--field-intra", "0", "0", "--field-extra", "0", "0",
+                   "--json")
+    assert proc.returncode == 0, proc.stderr
+    text = {c["name"]: c for c in json.loads(proc.stdout)["checks"]}["text_images"]
+    assert text["warning"] and "do not look like a ZEMAX export" in text["detail"]
 
 
 def test_a_wavelength_of_another_band_is_a_warning():
@@ -282,6 +299,7 @@ def test_a_wavelength_of_another_band_is_a_warning():
 def _fits_pair(tmp_path: Path, defocus: tuple[float, float] = (-1.0, 1.0)) -> list[Path]:
     from astropy.io import fits
 
+    tmp_path.mkdir(exist_ok=True)
     out = []
     for side, src, dz in (("intra", INTRA, defocus[0]), ("extra", EXTRA, defocus[1])):
         hdu = fits.PrimaryHDU(read_image(src))
@@ -321,10 +339,23 @@ def test_fits_defocus_out_of_range_names_the_header(tmp_path: Path):
     pair = _fits_pair(tmp_path, defocus=(-1000.0, 1000.0))
     proc = run_cli("estimate", *pair, "--instrument", "paraxial")
     assert proc.returncode == 2 and proc.stdout == ""
-    assert f"intra image {pair[0]}: its FITS header says DEFOCUS = 1000" in proc.stderr
+    assert f"intra image {pair[0]}: its FITS header: DEFOCUS must be in (0, 100) mm" in proc.stderr
     assert "micrometres? 1000 um = 1 mm" in proc.stderr and "Traceback" not in proc.stderr
     proc = run_cli("estimate", *pair, "--instrument", "paraxial", "--defocal-offset", "1.0")
     assert proc.returncode == 0, proc.stderr
+    assert "defocal offset 1 mm (command line)" in proc.stdout
+    # In metres: a donut of a tenth of a pixel, said so (the geometry cannot be built).
+    pair = _fits_pair(tmp_path / "m", defocus=(-0.001, 0.001))
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "gives a donut of radius 0.0 px" in proc.stderr
+    assert "metres? 0.001 m = 1 mm" in proc.stderr
+    # Two headers that disagree: one error line, naming both values and how to give one.
+    pair = _fits_pair(tmp_path / "d", defocus=(-1.0, 1.5))
+    proc = run_cli("estimate", *pair, "--instrument", "paraxial")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "the FITS headers disagree on the defocal offset: [1.0, 1.5] mm" in proc.stderr
+    assert "estimate --defocal-offset, batch column defocal_offset_mm" in proc.stderr
 
 
 def test_batch_writes_a_table_of_results(tmp_path: Path):

@@ -225,7 +225,7 @@ def _add_estimate(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _run_estimate(args: argparse.Namespace) -> int:
-    from cwfs_ros.cli.provenance import run_pair
+    from cwfs_ros.cli.provenance import format_geometry, run_pair
 
     if args.plot is not None and not args.plot.resolve().parent.is_dir():
         raise CliError(f"--plot {args.plot}: directory {args.plot.parent} does not exist")
@@ -255,6 +255,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(format_result(result))
+        print(format_geometry(run.record))
         print(format_checks(run.checks))
         if args.plot is not None:
             print(f"plot: {args.plot}")

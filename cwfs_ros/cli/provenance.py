@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import math
 import platform
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -38,6 +39,7 @@ from cwfs_ros.errors import ConfigError, CwfsError
 __all__ = [
     "FITS_KEYS",
     "Check",
+    "format_geometry",
     "PairInput",
     "assess",
     "plausible_limit_nm",
@@ -48,6 +50,13 @@ __all__ = [
 ]
 
 FITS_KEYS = {"field_x": "FIELD_X", "field_y": "FIELD_Y", "defocus": "DEFOCUS"}
+# How estimate and batch take what a FITS header may lack (named in the messages of both).
+FIELD_OPTIONS = {role: f"estimate --field-{role} X Y, batch columns field_{role}_x/_y"
+                 for role in ("intra", "extra")}
+DEFOCUS_OPTION = "estimate --defocal-offset, batch column defocal_offset_mm"
+# A number as the ZEMAX exports write them (1.234E+000): their text images are stored
+# upside down, and any other text is more likely an array written as it stands.
+_ZEMAX_NUMBER = re.compile(rb"\d\.\d+E[+-]\d{3}(?!\d)")
 # The fraction of the sensor's own defocus (as Z4) a departure from design may reach.
 PLAUSIBLE_FRACTION = 0.5
 # An outer loop still moving by more than this (nm rms) at its iteration limit is not near a
@@ -70,6 +79,8 @@ class PairInput:
     defocus_mm: float | None = None
     #: A text image whose rows were reversed on reading (the ZEMAX set's storage order).
     text_flipped: bool = False
+    #: A text image whose numbers are not written as the ZEMAX exports write them.
+    text_not_zemax: bool = False
 
     def describe(self) -> dict[str, Any]:
         data = self.path.read_bytes()
@@ -148,22 +159,18 @@ def read_pair_image(path: str | Path, role: str, *, text_flip: bool = True) -> P
                          "(are intra and extra exchanged?)")
     text = not is_fits and not name.endswith(".npy")
     return PairInput(p, image, fld, None if dz is None else abs(dz),
-                     text_flipped=text and text_flip)
+                     text_flipped=text and text_flip,
+                     text_not_zemax=text and not _ZEMAX_NUMBER.search(p.read_bytes()[:4096]))
 
 
-def _check_header_defocus(path: Path, role: str, dz: float) -> None:
-    """ConfigError naming the header when its DEFOCUS is no defocal offset in mm (the
-    estimate takes ``0 < |l| < 100`` mm)."""
-    from cwfs_ros.wfs.instrument import MAX_DEFOCAL_OFFSET_MM
-
-    if np.isfinite(dz) and 0 < abs(dz) < MAX_DEFOCAL_OFFSET_MM:
-        return
-    hint = ""
-    if np.isfinite(dz) and abs(dz) >= 1e2:
-        hint = f" (micrometres? {dz:g} um = {dz * 1e-3:g} mm)"
-    raise ConfigError(f"{role} image {path}: its FITS header says {FITS_KEYS['defocus']} = "
-                      f"{dz:g}, outside 0 < |defocus| < {MAX_DEFOCAL_OFFSET_MM:g} mm{hint}; give "
-                      "--defocal-offset (mm) or mend the header")
+def _header_defocus(pi: PairInput, role: str, inst: Any) -> float:
+    """The FITS header's |DEFOCUS| if the instrument can sense at it; else ConfigError
+    naming the file and the keyword (with the unit it looks like)."""
+    try:
+        return inst.checked_defocal_offset_mm(pi.defocus_mm, FITS_KEYS["defocus"])
+    except ConfigError as exc:
+        raise ConfigError(f"{role} image {pi.path}: its FITS header: {exc}; give the offset "
+                          f"in mm ({DEFOCUS_OPTION}) or mend the header") from None
 
 
 # ------------------------------------------------------------------------------ checks
@@ -210,8 +217,7 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
               f"{inst.field_radius_deg:g} deg"),
         Check("image_checks", "pass", "finite, not flat, not cut, large enough, not "
               "saturated (each would have refused the pair)"),
-        Check("swap_check", result.swap_check, "intra/extra told apart by the vignetting: "
-              "confirmed, inconclusive, or off (on axis, or disabled)"),
+        _swap(result.swap_check),
         Check("caustic", "fail" if result.caustic else "pass",
               "the compensation folded into caustic: the numbers are the last good "
               "iteration's" if result.caustic else "no caustic", flags=bool(result.caustic)),
@@ -221,6 +227,17 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
               flags=bool(abs(dep[worst]) > limit)),
         _settled(result, last),
     ]
+
+
+def _swap(outcome: str) -> Check:
+    """The swap check's outcome, and for ``off`` what then goes unseen."""
+    if outcome != "off":
+        return Check("swap_check", outcome, "intra/extra told apart by the vignetting, and "
+                     "each image's orientation checked against it")
+    return Check("swap_check", "off", "the vignetting at this field is too weak to tell intra "
+                 "from extra or a turned image (for LSST within about 1.3 deg of the axis), "
+                 "or the check is disabled: exchanged, turned or mirrored images are not "
+                 "detected here")
 
 
 def _settled(result: Any, last_nm: float) -> Check:
@@ -292,20 +309,17 @@ def _geometry(inputs: dict[str, PairInput], fields: dict[str, Any],
         elif pi.field_deg is not None:
             got[role], sources[role] = pi.field_deg, f"FITS header {pi.path.name}"
         else:
-            from cwfs_ros.errors import ConfigError
-
-            raise ConfigError(f"no field for the {role} image: give --field-{role} X Y, or "
-                              f"{FITS_KEYS['field_x']}/{FITS_KEYS['field_y']} (deg) in its "
-                              "FITS header")
+            raise ConfigError(f"no field for the {role} image: give it "
+                              f"({FIELD_OPTIONS[role]}), or {FITS_KEYS['field_x']}/"
+                              f"{FITS_KEYS['field_y']} (deg) in its FITS header")
     if defocal_offset_mm is not None:
         return got, sources, float(defocal_offset_mm)
-    for role, pi in inputs.items():
-        if pi.defocus_mm is not None:  # the header's value is used: say which is wrong
-            _check_header_defocus(pi.path, role, pi.defocus_mm)
-    headers = {pi.defocus_mm for pi in inputs.values() if pi.defocus_mm is not None}
+    # The headers' values are used: a wrong one is named with its file.
+    headers = {_header_defocus(pi, role, inst) for role, pi in inputs.items()
+               if pi.defocus_mm is not None}
     if len(headers) > 1:
         raise ConfigError(f"the FITS headers disagree on the defocal offset: {sorted(headers)}"
-                          " mm; give --defocal-offset")
+                          f" mm; give it ({DEFOCUS_OPTION})")
     return got, sources, headers.pop() if headers else inst.defocal_offset_mm
 
 
@@ -354,9 +368,16 @@ def _input_notes(inputs: dict[str, PairInput], inst: Any, band: str,
     out = []
     flipped = [s for s in inputs if inputs[s].text_flipped]
     if flipped:
-        out.append(Check("text_images", "flipped", f"{' and '.join(flipped)} read from text "
-                         "with the rows reversed, as the ZEMAX set stores them "
-                         "(--no-text-flip reads them as stored)"))
+        what = (f"{' and '.join(flipped)} read from text with the rows reversed, as the ZEMAX "
+                "set stores them (--no-text-flip reads them as stored)")
+        odd = [s for s in flipped if inputs[s].text_not_zemax]
+        if odd:
+            what = (f"WARNING: {what}, but {' and '.join(odd)} "
+                    f"do{'es' if len(odd) == 1 else ''} not look like a ZEMAX export "
+                    "(numbers such as 1.234E+000): text written from an array in the "
+                    "focal-plane frame [row=y, col=x] (numpy savetxt, say) is upside down so, "
+                    "and on axis nothing else can tell")
+        out.append(Check("text_images", "flipped", what, warning=bool(odd)))
     if wavelength_nm is not None and band in inst.band_wavelength_nm:
         effective = inst.band_wavelength_nm
         nearest = min(effective, key=lambda b: abs(effective[b] - float(wavelength_nm)))
@@ -400,4 +421,22 @@ def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
                         seeing_fwhm_arcsec=seeing_fwhm_arcsec, field_sources=sources,
                         checks=checks)
     record["field_intra_deg"], record["field_extra_deg"] = fields["intra"], fields["extra"]
+    record["defocal_offset_source"] = _defocus_source(inputs, defocal_offset_mm, inst)
     return PairRun(result, inputs, checks, record)
+
+
+def _defocus_source(inputs: dict[str, PairInput], given_mm: float | None, inst: Any) -> str:
+    if given_mm is not None:
+        return "command line"
+    headers = [pi.path.name for pi in inputs.values() if pi.defocus_mm is not None]
+    return f"FITS header {', '.join(headers)}" if headers else f"instrument {inst.name}"
+
+
+def format_geometry(record: dict[str, Any]) -> str:
+    """One line: each field and the defocal offset used, with where each came from."""
+    def field(role: str) -> str:
+        x, y = record[f"field_{role}_deg"]
+        return f"{role} ({x:g}, {y:g}) deg ({record['field_sources'][role]})"
+
+    return (f"inputs: field {field('intra')}, {field('extra')}; defocal offset "
+            f"{record['defocal_offset_mm']:g} mm ({record['defocal_offset_source']})")

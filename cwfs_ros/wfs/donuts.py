@@ -249,7 +249,7 @@ def _checked_stamp(image: np.ndarray, name: str, outer_radius_px: float,
             f"{need}x{need} px"
         )
     if float(img.max() - img.min()) == 0.0:
-        raise FlatImageError(f"{name} image is constant ({img.flat[0]!r}): no donut")
+        raise FlatImageError(f"{name} image is constant ({float(img.flat[0]):g}): no donut")
     return img
 
 

@@ -57,7 +57,7 @@ from cwfs_ros.wfs.checks import (
 )
 from cwfs_ros.wfs.compensation import Compensated, compensate
 from cwfs_ros.wfs.donuts import PreparedDonut, prepare_donut
-from cwfs_ros.wfs.instrument import MAX_DEFOCAL_OFFSET_MM, Instrument, load_instrument
+from cwfs_ros.wfs.instrument import Instrument, load_instrument
 from cwfs_ros.wfs.mapping import (
     ImageMapping,
     design_zernikes_tiled,
@@ -847,11 +847,8 @@ class EstimateConfig:
         fe = _field(field_extra_deg, "field_extra_deg")
         inst.check_field(fi, "field_intra_deg")
         inst.check_field(fe, "field_extra_deg")
-        defocus = (inst.defocal_offset_mm if defocal_offset_mm is None
-                   else float(defocal_offset_mm))
-        if not (np.isfinite(defocus) and 0 < defocus < MAX_DEFOCAL_OFFSET_MM):
-            raise ConfigError(f"defocal_offset_mm must be in (0, {MAX_DEFOCAL_OFFSET_MM:g}), "
-                              f"got {defocal_offset_mm!r}")
+        defocus = inst.checked_defocal_offset_mm(
+            inst.defocal_offset_mm if defocal_offset_mm is None else defocal_offset_mm)
         if inst.mapping == "batoid" and band not in inst.band_wavelength_nm:
             raise ConfigError(f"unknown band {band!r}; known: {sorted(inst.band_wavelength_nm)}")
         wl = inst.wavelength_nm(band, wavelength_nm)

@@ -19,7 +19,8 @@ from cwfs_ros.config import config_dir
 from cwfs_ros.errors import ConfigError
 
 __all__ = ["Instrument", "load_instrument", "available_instruments", "MAPPINGS",
-           "WAVELENGTH_RANGE_NM", "checked_wavelength_nm", "MAX_DEFOCAL_OFFSET_MM"]
+           "WAVELENGTH_RANGE_NM", "checked_wavelength_nm", "MAX_DEFOCAL_OFFSET_MM",
+           "MIN_DONUT_RADIUS_PX"]
 
 MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
 
@@ -29,6 +30,10 @@ MAPPINGS = ("paraxial", "fastbeam", "batoid", "poly10")
 WAVELENGTH_RANGE_NM = (250.0, 2500.0)
 #: The estimate takes a |defocal offset| in (0, this) mm.
 MAX_DEFOCAL_OFFSET_MM = 100.0
+#: The smallest donut (outer radius, px) the estimator takes: its pupil grid has one sample
+#: per pixel, and a smaller donut resolves too few for Z4..Z22 (below ~8 px the geometry
+#: cannot be built at all).
+MIN_DONUT_RADIUS_PX = 10.0
 
 
 def checked_wavelength_nm(value: float) -> float:
@@ -151,6 +156,29 @@ class Instrument:
                 f"{what} ({field_deg[0]:g}, {field_deg[1]:g}) deg is {r:.3f} deg off axis, "
                 f"outside the field of view of {self.name} ({self.field_radius_deg:g} deg "
                 f"radius, field_radius_deg of its instrument file){unit}")
+
+    def checked_defocal_offset_mm(self, value: Any, what: str = "defocal_offset_mm"
+                                  ) -> float:
+        """``value`` (mm) if it is a defocal offset this instrument can sense at: within
+        (0, :data:`MAX_DEFOCAL_OFFSET_MM`) and giving a donut of at least
+        :data:`MIN_DONUT_RADIUS_PX`; else ConfigError naming ``what`` and the unit it looks
+        like."""
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{what} must be a number (mm), got {value!r}") from None
+        if not np.isfinite(v) or not 0 < v < MAX_DEFOCAL_OFFSET_MM:
+            hint = f" (micrometres? {v:g} um = {v * 1e-3:g} mm)" if v >= 100 else ""
+            raise ConfigError(f"{what} must be in (0, {MAX_DEFOCAL_OFFSET_MM:g}) mm, got "
+                              f"{value!r}{hint}")
+        radius = self.donut_radius_px(v)
+        if radius < MIN_DONUT_RADIUS_PX:
+            hint = f" (metres? {v:g} m = {v * 1e3:g} mm)" if v < 0.01 else ""
+            raise ConfigError(
+                f"{what} {v:g} mm gives a donut of radius {radius:.1f} px on {self.name}: "
+                f"curvature sensing needs the pupil resolved, a radius of at least "
+                f"{MIN_DONUT_RADIUS_PX:g} px ({MIN_DONUT_RADIUS_PX / radius * v:.3g} mm){hint}")
+        return v
 
     def wavelength_nm(self, band: str | None, wavelength_nm: float | None = None) -> float:
         """The wavelength to use: the caller's, else the band's effective wavelength."""
