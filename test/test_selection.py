@@ -574,23 +574,58 @@ def test_multi_pair_uncertainty_factor_scales_combinations_only():
         CombinationConfig(multi_pair_scale=0.1)
 
 
-def test_detection_refuses_non_finite_frames_anywhere():
+def test_detection_finds_non_finite_pixels_anywhere():
     """The finiteness check reads the block sums; a NaN in the rows or columns the binning
-    trims off, or values so large that a sum overflows, are caught too."""
+    trims off is found too, and values so large that a sum overflows are refused.  A few
+    are set aside (counted on the sky model); with ``max_nonfinite_fraction`` 0 the frame
+    is refused whole, and beyond it always."""
     from cwfs_ros.errors import ImageError, NonFiniteImageError
 
     kw = dict(outer_radius_px=66.0, inner_radius_px=40.0, stamp_px=160)
     base = np.random.default_rng(1).poisson(30.0, (403, 401)).astype(np.float32)
-    detect_donuts(base, **kw)  # finite: accepted
+    assert detect_donuts(base, **kw)[1].n_nonfinite == 0
+    strict = DetectionConfig(max_nonfinite_fraction=0.0)
     for where in ((10, 10), (402, 7), (9, 400), (402, 400)):
         frame = base.copy()
         frame[where] = np.nan
+        assert detect_donuts(frame, **kw)[1].n_nonfinite == 1, where
         with pytest.raises(NonFiniteImageError, match="1 non-finite pixel"):
-            detect_donuts(frame, **kw)
+            detect_donuts(frame, config=strict, **kw)
+    frame = base.copy()
+    frame[:150] = np.inf
+    with pytest.raises(NonFiniteImageError, match=r"60150 non-finite pixel\(s\) \(37.2%"):
+        detect_donuts(frame, **kw)
     frame = base.copy()
     frame[20:22, 20:22] = np.float32(3e38)
     with pytest.raises(ImageError, match="too large"):
         detect_donuts(frame, **kw)
+
+
+def test_a_non_finite_pixel_drops_only_the_star_whose_stamp_holds_it(intra_frame,
+                                                                     extra_frame):
+    """A NaN far from every star leaves the corner as it was, said in its note; an Inf in
+    an accepted star's stamp drops that star (``non_finite``), and the others are used."""
+    kw = dict(corner="R00", settings=EstimatorSettings(solver="lsq"), config=_config())
+    ref = estimate_corner_frames(intra_frame.image, extra_frame.image, **kw)
+    assert ref.valid and "non-finite" not in ref.summary()
+    used = [d for d in ref.detections["intra"] if d.ok]
+    far = intra_frame.image.copy()
+    ys, xs = np.mgrid[:far.shape[0], :far.shape[1]]
+    clear = np.ones(far.shape, bool)
+    for d in ref.detections["intra"]:
+        clear &= np.hypot(xs - d.x, ys - d.y) > 160
+    far[tuple(np.argwhere(clear)[0])] = np.nan
+    res = estimate_corner_frames(far, extra_frame.image, **kw)
+    assert res.valid and res.n_pairs == ref.n_pairs
+    np.testing.assert_array_equal(res.zernikes_nm, ref.zernikes_nm)
+    assert "non-finite pixels: 1 in the intra frame" in res.summary(), res.summary()
+    hit = intra_frame.image.copy()
+    hit[int(round(used[0].y)) + 20, int(round(used[0].x))] = np.inf
+    res = estimate_corner_frames(hit, extra_frame.image, **kw)
+    statuses = {(round(d.x), round(d.y)): d.status for d in res.detections["intra"]}
+    assert statuses[(round(used[0].x), round(used[0].y))] == "non_finite"
+    assert sum(d.ok for d in res.detections["intra"]) == len(used) - 1
+    assert res.valid == (len(used) > 1) and np.all(np.isfinite(res.zernikes_nm)) == res.valid
 
 
 def test_a_missing_selection_file_is_a_config_error(tmp_path):

@@ -24,7 +24,10 @@ Steps (all on a frame already in the focal-plane orientation, ``[row=y, col=x]``
    the donut's central hole and outside its footprint (both near zero for an isolated donut,
    large for two overlapping ones).
 4. **Rejection**, each with a reason (:data:`REASONS`), in this order:
-   ``donut_cut_by_edge`` (the stamp does not fit in the frame), ``saturated`` (a raw pixel in
+   ``non_finite`` (the stamp holds a NaN or Inf pixel: a frame with a few, up to
+   ``max_nonfinite_fraction``, is searched with them set to its median, and only the stars
+   whose stamps hold one are dropped), ``donut_cut_by_edge`` (the stamp does not fit in the
+   frame), ``saturated`` (a raw pixel in
    the footprint reaches ``saturation_level``), ``blended`` (another source within
    ``blend_distance_px`` - by default close enough for its light to enter this stamp -, or a
    flux centroid pulled away from the ring's centre, or light in the ring's hole or outside
@@ -60,11 +63,12 @@ __all__ = [
 
 # Rejection reasons.  The edge reason is the estimator's own (errors.DonutCutError), so that a
 # node counts a donut cut by the frame edge and one cut by a stamp edge together.
+REASON_NONFINITE = NonFiniteImageError.reason
 REASON_EDGE = DonutCutError.reason
 REASON_SATURATED = "saturated"
 REASON_BLENDED = "blended"
 REASON_FAINT = "too_faint"
-REASONS = (REASON_EDGE, REASON_SATURATED, REASON_BLENDED, REASON_FAINT)
+REASONS = (REASON_NONFINITE, REASON_EDGE, REASON_SATURATED, REASON_BLENDED, REASON_FAINT)
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,8 @@ class DetectionConfig:
             footprint) leaves more of the peak unexplained than ``detect_snr +
             unexplained_fraction * S/N of the stronger``: a fainter star close by.
         max_candidates: at most this many peaks are measured (brightest first).
+        max_nonfinite_fraction: a frame with more of its pixels NaN or Inf than this is
+            refused whole; with fewer, only the stars whose stamps hold one are.
     """
 
     bin_px: int = 8
@@ -124,6 +130,7 @@ class DetectionConfig:
     sidelobe_margin: float = 1.5
     unexplained_fraction: float = 0.02
     max_candidates: int = 64
+    max_nonfinite_fraction: float = 0.25
 
     def __post_init__(self) -> None:
         problems = []
@@ -149,6 +156,9 @@ class DetectionConfig:
         if not isinstance(self.max_candidates, int) or self.max_candidates < 1:
             problems.append(f"max_candidates must be an integer >= 1, got "
                             f"{self.max_candidates!r}")
+        v = self.max_nonfinite_fraction
+        if not (isinstance(v, (int, float)) and 0.0 <= v < 1.0):
+            problems.append(f"max_nonfinite_fraction must be in [0, 1), got {v!r}")
         if problems:
             raise ConfigError("detection: " + "; ".join(problems))
 
@@ -204,11 +214,13 @@ class Background:
         cell_px: (rows, cols) of a cell, full-resolution pixels; cell (i, j) is centred at
             x = (j + 0.5) * cell_px[1] - 0.5, y = (i + 0.5) * cell_px[0] - 0.5.
         noise: rms of the sky-subtracted pixels (frame units per full-resolution pixel).
+        n_nonfinite: NaN or Inf pixels of the frame, set to its median for the search.
     """
 
     mesh: np.ndarray
     cell_px: tuple[float, float]
     noise: float
+    n_nonfinite: int = 0
 
     def _weights(self, coords: np.ndarray, axis: int) -> np.ndarray:
         """Bilinear weights (len(coords), mesh cells along ``axis``).
@@ -274,7 +286,7 @@ def _binned(frame: np.ndarray, b: int) -> np.ndarray:
     # A float32 frame's row sums stay float32 (b values: exact for photon counts below
     # 2^24 / b, 1e-7 relative otherwise), halving the traffic of the full-frame pass; the
     # block sums are float64.
-    # NaN, Inf and overflow propagate silently into the sums: _check_finite reads them there.
+    # NaN, Inf and overflow propagate silently into the sums: _nonfinite reads them there.
     with np.errstate(over="ignore", invalid="ignore"):
         rows = np.add(a[0::b], a[1::b],
                       dtype=np.float32 if a.dtype == np.float32 else np.float64)
@@ -656,24 +668,31 @@ def _check_frame(frame: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
-def _check_finite(frame: np.ndarray, binned: np.ndarray, b: int, name: str) -> None:
-    """Raise NonFiniteImageError if the frame holds NaN or Inf.
+def _nonfinite(frame: np.ndarray, binned: np.ndarray, b: int, name: str,
+               max_fraction: float) -> np.ndarray | None:
+    """The mask of the frame's NaN and Inf pixels, or None when it has none;
+    NonFiniteImageError when more than ``max_fraction`` of them are.
 
     A block sum is finite exactly when its pixels are (NaN and Inf propagate; only pixel
     values beyond ~1e37 could overflow a sum, and those are refused as such), so the binned
     frame answers for the whole frame but the few rows and columns its trimming left out,
-    at a thousandth of the cost of ``isfinite`` over 2 Mpixel.  Only a failing frame is
-    counted pixel by pixel.
+    at a thousandth of the cost of ``isfinite`` over 2 Mpixel.  Only a frame with some is
+    looked at pixel by pixel.
     """
     ny, nx = binned.shape[0] * b, binned.shape[1] * b
     ok = (np.isfinite(binned).all() and np.isfinite(frame[ny:]).all()
           and np.isfinite(frame[:ny, nx:]).all())
     if ok:
-        return
-    n_bad = int(np.count_nonzero(~np.isfinite(frame)))
-    if n_bad:
-        raise NonFiniteImageError(f"{name} frame has {n_bad} non-finite pixel(s)")
-    raise ImageError(f"{name} frame has pixel values too large to sum (float64 overflow)")
+        return None
+    bad = ~np.isfinite(frame)
+    n_bad = int(np.count_nonzero(bad))
+    if not n_bad:
+        raise ImageError(f"{name} frame has pixel values too large to sum (float64 overflow)")
+    if n_bad > max_fraction * frame.size:
+        raise NonFiniteImageError(
+            f"{name} frame has {n_bad} non-finite pixel(s) ({n_bad / frame.size:.1%}, more "
+            f"than max_nonfinite_fraction {max_fraction:g} of the frame)")
+    return bad
 
 
 def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px: float,
@@ -700,7 +719,7 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         ImageError subclasses for a frame that is not a finite 2-D numeric array.
     """
     cfg = config or DetectionConfig()
-    a, bg, sub = _frame_and_sky(frame, cfg, name, background)
+    a, bg, sub, bad = _frame_and_sky(frame, cfg, name, background)
     cands = _candidates(sub, bg.noise, outer_radius_px, inner_radius_px, cfg)
     half = stamp_px / 2.0
     blend_d = (cfg.blend_distance_px if cfg.blend_distance_px is not None
@@ -713,6 +732,10 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         d[i] = np.inf
         near = float(d.min()) if d.size else float("inf")
         reasons, msgs = _judge(m, near, blend_d, a.shape, stamp_px, cfg, name)
+        n_bad = _stamp_count(bad, m["x"], m["y"], stamp_px)
+        if n_bad:
+            reasons.insert(0, REASON_NONFINITE)
+            msgs.insert(0, f"its stamp holds {n_bad} non-finite pixel(s) of the {name} frame")
         status = reasons[0] if reasons else "ok"
         out.append(DetectedDonut(m["x"], m["y"], m["flux"], m["snr"], m["peak_value"],
                                  c.detect_snr, m["hole_fraction"], m["outside_fraction"],
@@ -721,10 +744,22 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
     return out, bg
 
 
+def _stamp_count(mask: np.ndarray | None, x: float, y: float, stamp_px: int) -> int:
+    """How many of ``mask``'s pixels the stamp centred on (x, y) holds (as
+    :func:`cut_stamp` cuts it; 0 for no mask)."""
+    if mask is None:
+        return 0
+    x0 = int(round(x - (stamp_px - 1) / 2.0))
+    y0 = int(round(y - (stamp_px - 1) / 2.0))
+    return int(np.count_nonzero(mask[max(y0, 0):max(y0 + stamp_px, 0),
+                                     max(x0, 0):max(x0 + stamp_px, 0)]))
+
+
 def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
                    background: Background | None
                    ) -> tuple[np.ndarray, Background, np.ndarray]:
-    """(frame, sky model, binned sky-subtracted frame) of a checked frame.
+    """(frame, sky model, binned sky-subtracted frame, mask of its non-finite pixels or
+    None) of a checked frame; the frame returned has those pixels set to its median.
 
     The pixel noise is taken as at least one electron's shot noise: a sky without noise (a
     simulation with neither sky nor read noise) would otherwise make the filter's float
@@ -736,7 +771,10 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
         raise ImageError(f"{name} frame {a.shape[1]}x{a.shape[0]} px is too small")
     b = cfg.bin_px
     binned = _binned(a, b)
-    _check_finite(a, binned, b, name)
+    bad = _nonfinite(a, binned, b, name, cfg.max_nonfinite_fraction)
+    if bad is not None:
+        a = np.where(bad, np.median(a[~bad]), a)
+        binned = _binned(a, b)
     if background is None:
         bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
     else:
@@ -744,7 +782,9 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     floor = 1.0 / cfg.gain_e_per_adu
     if not bg.noise >= floor:
         bg = replace(bg, noise=floor)
-    return a, bg, sub
+    if bad is not None:
+        bg = replace(bg, n_nonfinite=int(bad.sum()))
+    return a, bg, sub, bad
 
 
 def _candidates(sub: np.ndarray, noise: float, outer_radius_px: float,

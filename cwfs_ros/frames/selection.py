@@ -538,10 +538,11 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
     window = frame_window(intra_frame, extra_frame, hi, he)
     kw = dict(instrument=settings.instrument, band=settings.band, config=cfg,
               pad_px=settings.pad_px, full_scale=full_scale)
-    st_in, det_in, _ = select_stamps(intra_frame, hi, **kw)
-    st_ex, det_ex, _ = select_stamps(extra_frame, he, **kw)
+    st_in, det_in, bg_in = select_stamps(intra_frame, hi, **kw)
+    st_ex, det_ex, bg_ex = select_stamps(extra_frame, he, **kw)
     t1 = time.perf_counter()
-    note = "; ".join(n for n in (window, _cap_note(det_in, det_ex, cfg)) if n)
+    note = "; ".join(n for n in (window, _cap_note(det_in, det_ex, cfg),
+                                 _nonfinite_note(bg_in, bg_ex)) if n)
     pairs = pair_stars(st_in, st_ex, max_pairs=cfg.max_pairs, method=cfg.pairing,
                        centres_deg=(hi.field_deg, he.field_deg))
     results = estimate_pairs(pairs, settings)
@@ -622,8 +623,11 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
             raise FrameSizeError(
                 f"the {name} frame is {rows}x{cols} (rows x cols, focal-plane orientation), "
                 f"larger than the {half.shape_px[0]}x{half.shape_px[1]} {half.corner} "
-                f"{half.sensor} half-chip of the sensor file: a transposed or turned "
-                f"readout, or the wrong sensor file")
+                f"{half.sensor} half-chip of the sensor file: "
+                + ("a transposed or turned readout, or the wrong sensor file"
+                   if rows <= half.shape_px[1] and cols <= half.shape_px[0] else
+                   "not a window of it (overscan or prescan pixels left in, or the wrong "
+                   "sensor file)"))
         if half.crosswise(shapes[name]):
             raise FrameSizeError(
                 f"the {name} frame is {rows}x{cols} (rows x cols, focal-plane orientation): "
@@ -644,6 +648,15 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
     return (f"{shapes['intra'][0]}x{shapes['intra'][1]} windows of the "
             f"{intra.shape_px[0]}x{intra.shape_px[1]} half-chips, taken as centred on their "
             f"reference pixels")
+
+
+def _nonfinite_note(bg_in: Background, bg_ex: Background) -> str:
+    """How many NaN or Inf pixels each half had ("" when none): the stars whose stamps
+    hold one were not used."""
+    bad = [f"{n} in the {s} frame" for s, n in (("intra", bg_in.n_nonfinite),
+                                                ("extra", bg_ex.n_nonfinite)) if n]
+    return (f"non-finite pixels: {', '.join(bad)}, set to the frame's median for the search; "
+            "stars whose stamps hold one not used") if bad else ""
 
 
 def _cap_note(det_in: list[DetectedDonut], det_ex: list[DetectedDonut],
