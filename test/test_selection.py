@@ -628,6 +628,26 @@ def test_a_non_finite_pixel_drops_only_the_star_whose_stamp_holds_it(intra_frame
     assert res.valid == (len(used) > 1) and np.all(np.isfinite(res.zernikes_nm)) == res.valid
 
 
+def test_frames_in_other_units_than_electrons_are_said_to_be(intra_frame, extra_frame):
+    """Frames scaled by 1e-3 (not electrons): the S/N limits, in electrons, find nothing,
+    and the refusal says the sky is quieter than one electron's shot noise and what to set;
+    with gain_e_per_adu 1000 (and the saturation level in those units) the corner is the
+    same as in electrons."""
+    kw = dict(corner="R00", settings=EstimatorSettings(solver="lsq"))
+    res = estimate_corner_frames(intra_frame.image * 1e-3, extra_frame.image * 1e-3,
+                                 config=_config(), **kw)
+    assert not res.valid and res.reason == "no_donuts"
+    assert "below one electron's shot noise" in res.status and "gain_e_per_adu" in res.status
+    ref = estimate_corner_frames(intra_frame.image, extra_frame.image, config=_config(), **kw)
+    assert "shot noise" not in ref.summary()
+    det = _config().detection.with_overrides(gain_e_per_adu=1000.0,
+                                             saturation_level=FULL_WELL * 1e-3)
+    res = estimate_corner_frames(intra_frame.image * 1e-3, extra_frame.image * 1e-3,
+                                 config=SelectionConfig(detection=det), **kw)
+    assert res.valid and res.n_pairs == ref.n_pairs
+    np.testing.assert_allclose(res.zernikes_nm, ref.zernikes_nm, atol=1e-3)
+
+
 def test_a_missing_selection_file_is_a_config_error(tmp_path):
     """Not the dataclass defaults: the file holds the fitted noise model (measured: a
     mistyped path used to give c = 2000 nm instead of the fitted ~1988 and 6181)."""

@@ -222,6 +222,27 @@ def test_timeout_publishes_with_missing_corners_invalid_then_late_is_rejected():
     assert va.pending_count() == 0
 
 
+def test_a_missing_corner_says_what_became_of_its_images():
+    """A visit published at its timeout says, per missing corner, whether one half came
+    without the other, the pair was still being estimated, or nothing came: the vector's
+    status then agrees with the ``unpaired`` corner published later."""
+    pb = PairingBuffer(tolerance_ns=0, timeout_s=5.0)
+    va = VisitAssembler(tolerance_ns=0, timeout_s=2.0)
+    pb.add(img("R44", "intra", T0, t=10.0))  # its extra image is late
+    pb.add(img("R40", "intra", T0, t=10.0))
+    pair, _ = pb.add(img("R40", "extra", T0, t=10.1))  # paired; its estimate is slow
+    assert pair is not None
+    va.add(CornerEntry("R00", T0, zk(0), True, "ok"), 10.5)
+    (vec,) = va.expire(12.6, why_missing=pb.why_missing)
+    st = dict(zip(CORNERS, vec.statuses, strict=True))
+    assert st["R00"] == "ok"
+    assert st["R44"] == ("missing: no wavefront within the 2 s visit timeout (its intra image "
+                         "came, its extra image had not)")
+    assert st["R40"].endswith("(its images were paired, but its estimate had not come back)")
+    assert st["R04"].endswith("(none of its images had come)")
+    assert "R44 missing: no wavefront within the 2 s visit timeout (its intra" in vec.status
+
+
 def test_duplicate_corner_in_a_visit_is_rejected():
     va = VisitAssembler()
     va.add(CornerEntry("R00", T0, zk(0), True, "ok"), 0.0)

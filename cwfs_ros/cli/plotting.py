@@ -94,7 +94,7 @@ def plot_result(result: Any, path: str | Path, *, intra: np.ndarray | None = Non
     _result_convergence(fig.add_subplot(bottom[0, 1]), result)
 
     status = (f"caustic: {'yes' if result.caustic else 'no'}, "
-              f"converged: {'yes' if result.converged else 'no'}, "
+              f"settled: {'yes' if result.converged else 'no'}, "
               f"iterations: {result.iterations}, wall time: {result.wall_time_s:.3f} s")
     meta = (f"{result.instrument}, band {result.band} ({result.wavelength_nm:g} nm), "
             f"solver {result.solver}, field ({result.field_deg[0]:.3f}, "

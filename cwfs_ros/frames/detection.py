@@ -215,12 +215,15 @@ class Background:
             x = (j + 0.5) * cell_px[1] - 0.5, y = (i + 0.5) * cell_px[0] - 0.5.
         noise: rms of the sky-subtracted pixels (frame units per full-resolution pixel).
         n_nonfinite: NaN or Inf pixels of the frame, set to its median for the search.
+        measured_noise: the sky's own rms when it was below one electron's shot noise and
+            ``noise`` was raised to that (None otherwise).
     """
 
     mesh: np.ndarray
     cell_px: tuple[float, float]
     noise: float
     n_nonfinite: int = 0
+    measured_noise: float | None = None
 
     def _weights(self, coords: np.ndarray, axis: int) -> np.ndarray:
         """Bilinear weights (len(coords), mesh cells along ``axis``).
@@ -781,7 +784,7 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
         bg, sub = background, binned - _sky_binned(background, binned.shape, b)
     floor = 1.0 / cfg.gain_e_per_adu
     if not bg.noise >= floor:
-        bg = replace(bg, noise=floor)
+        bg = replace(bg, noise=floor, measured_noise=float(bg.noise))
     if bad is not None:
         bg = replace(bg, n_nonfinite=int(bad.sum()))
     return a, bg, sub, bad

@@ -552,7 +552,8 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
                    solver=settings.solver, times_s=(t0, t1, t2), note=note)
     if not st_in or not st_ex:
         return done(False, "no_donuts", _no_donuts_message(
-            {"intra": (st_in, det_in), "extra": (st_ex, det_ex)}), None, results)
+            {"intra": (st_in, det_in, bg_in), "extra": (st_ex, det_ex, bg_ex)},
+            cfg.detection.gain_e_per_adu), None, results)
     ok = [p for p in results if p.status == "ok"]
     if not ok:
         tags = sorted({p.status for p in results})
@@ -671,14 +672,23 @@ def _cap_note(det_in: list[DetectedDonut], det_ex: list[DetectedDonut],
             f"max_candidates ({cap}): fainter sources, if any, were not measured")
 
 
-def _no_donuts_message(sides: dict[str, tuple[list[StarStamp], list[DetectedDonut]]]
-                       ) -> str:
-    """Which half (or both) has no usable donut, and how many it detected and rejected."""
-    empty = [(s, dets) for s, (st, dets) in sides.items() if not st]
+def _no_donuts_message(sides: dict[str, tuple[list[StarStamp], list[DetectedDonut],
+                                              Background]], gain: float) -> str:
+    """Which half (or both) has no usable donut, and how many it detected and rejected; and
+    for a half whose sky was quieter than one electron's shot noise, that its units may not
+    be electrons (the S/N limits are in electrons)."""
+    empty = [(s, dets, bg) for s, (st, dets, bg) in sides.items() if not st]
     detail = "; ".join(f"{s}: {sum(not d.ok for d in dets)} detected and rejected"
-                       for s, dets in empty)
-    which = " and ".join(s for s, _ in empty)
-    return f"no usable donut on the {which} half ({detail})"
+                       for s, dets, _ in empty)
+    which = " and ".join(s for s, _, _ in empty)
+    quiet = [f"{s} {bg.measured_noise:.3g}" for s, _, bg in empty
+             if bg.measured_noise is not None and bg.measured_noise > 0]
+    units = (f". The sky noise ({', '.join(quiet)} per pixel) is below one electron's shot "
+             f"noise at gain_e_per_adu {gain:g}: a frame in other units than electrons needs "
+             "detection.gain_e_per_adu (electrons per unit), and saturation_level in its "
+             "units, in the selection file"
+             if quiet else "")
+    return f"no usable donut on the {which} half ({detail}){units}"
 
 
 def _inconsistency_message(comb: CombinedEstimate, res: list[PairResult],

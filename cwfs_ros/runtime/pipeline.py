@@ -476,7 +476,8 @@ class WavefrontPipeline:
 
     def expire_visits(self, now: float) -> list[VisitVector]:
         """Visits due at ``now`` (the missing corners invalid)."""
-        return [] if self.assembler is None else self.assembler.expire(now)
+        return ([] if self.assembler is None
+                else self.assembler.expire(now, why_missing=self.pairing.why_missing))
 
 
 def _full_scale_of(pair: PairReady) -> float | None:

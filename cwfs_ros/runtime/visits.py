@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -381,6 +381,21 @@ class PairingBuffer:
             paired.popitem(last=False)
         return PairReady(c, intra.stamp_ns, intra, extra)
 
+    def why_missing(self, corner: str, stamp_ns: int) -> str:
+        """What became of a corner's images of a visit, for a visit published without it:
+        paired (its estimate had not come back), one half waiting for the other, or none
+        received."""
+        if corner not in self._pending:
+            return "not served here"
+        if self.was_paired(corner, stamp_ns):
+            return "its images were paired, but its estimate had not come back"
+        waiting = [side for side in SIDES if any(abs(r.stamp_ns - stamp_ns) <= self.tolerance_ns
+                                                 for r in self._pending[corner][side])]
+        if waiting:
+            other = [side for side in SIDES if side not in waiting]
+            return f"its {waiting[0]} image came, its {other[0]} image had not"
+        return "none of its images had come"
+
     def was_paired(self, corner: str, stamp_ns: int) -> bool:
         """Whether that corner's visit was paired (still remembered)."""
         return corner in self._paired and self._paired_lookup(corner, stamp_ns) is not None
@@ -591,12 +606,17 @@ class VisitAssembler:
             return True, self._emit(visit, complete=True)
         return True, None
 
-    def expire(self, now: float) -> list[VisitVector]:
-        """Emit every visit older than the timeout, missing corners marked invalid."""
+    def expire(self, now: float, why_missing: Callable[[str, int], str] | None = None
+               ) -> list[VisitVector]:
+        """Emit every visit older than the timeout, missing corners marked invalid (with
+        ``why_missing(corner, stamp_ns)`` in their status, e.g.
+        :meth:`PairingBuffer.why_missing`)."""
         due = [v for v in self._visits if now - v.started > self.timeout_s]
-        return [self._emit(v, complete=False) for v in sorted(due, key=lambda v: v.stamp_ns)]
+        return [self._emit(v, complete=False, why_missing=why_missing)
+                for v in sorted(due, key=lambda v: v.stamp_ns)]
 
-    def _emit(self, visit: _Visit, *, complete: bool) -> VisitVector:
+    def _emit(self, visit: _Visit, *, complete: bool,
+              why_missing: Callable[[str, int], str] | None = None) -> VisitVector:
         self._visits.remove(visit)
         z = np.full(len(CORNERS) * N_ZK, np.nan)
         unc = np.zeros(len(CORNERS) * N_ZK)
@@ -606,6 +626,8 @@ class VisitAssembler:
             e = visit.entries.get(c)
             if e is None:
                 st = f"missing: no wavefront within the {self.timeout_s:g} s visit timeout"
+                if why_missing is not None:
+                    st += f" ({why_missing(c, visit.stamp_ns)})"
                 ok = False
             else:
                 ok, st = e.valid, e.status if not e.valid else "ok"
