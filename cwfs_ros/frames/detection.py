@@ -24,10 +24,11 @@ Steps (all on a frame already in the focal-plane orientation, ``[row=y, col=x]``
    the donut's central hole and outside its footprint (both near zero for an isolated donut,
    large for two overlapping ones).
 4. **Rejection**, each with a reason (:data:`REASONS`), in this order:
-   ``non_finite`` (the stamp holds a NaN or Inf pixel: a frame with a few, up to
-   ``max_nonfinite_fraction``, is searched with them set to its median, and only the stars
-   whose stamps hold one are dropped), ``donut_cut_by_edge`` (the stamp does not fit in the
-   frame), ``saturated`` (a raw pixel in
+   ``bad_pixels`` (the stamp holds a NaN or Inf pixel, or a dead one: a frame with a few
+   NaN or Inf, up to ``max_nonfinite_fraction``, or with dead regions (blocks of identical
+   values, a dead or unread amplifier) is searched with them set to its median, and only the
+   stars whose stamps hold one are dropped), ``donut_cut_by_edge`` (the stamp does not fit
+   in the frame), ``saturated`` (a raw pixel in
    the footprint reaches ``saturation_level``), ``blended`` (another source within
    ``blend_distance_px`` - by default close enough for its light to enter this stamp -, or a
    flux centroid pulled away from the ring's centre, or light in the ring's hole or outside
@@ -63,12 +64,12 @@ __all__ = [
 
 # Rejection reasons.  The edge reason is the estimator's own (errors.DonutCutError), so that a
 # node counts a donut cut by the frame edge and one cut by a stamp edge together.
-REASON_NONFINITE = NonFiniteImageError.reason
+REASON_BAD_PIXELS = "bad_pixels"
 REASON_EDGE = DonutCutError.reason
 REASON_SATURATED = "saturated"
 REASON_BLENDED = "blended"
 REASON_FAINT = "too_faint"
-REASONS = (REASON_NONFINITE, REASON_EDGE, REASON_SATURATED, REASON_BLENDED, REASON_FAINT)
+REASONS = (REASON_BAD_PIXELS, REASON_EDGE, REASON_SATURATED, REASON_BLENDED, REASON_FAINT)
 
 
 @dataclass(frozen=True)
@@ -215,6 +216,8 @@ class Background:
             x = (j + 0.5) * cell_px[1] - 0.5, y = (i + 0.5) * cell_px[0] - 0.5.
         noise: rms of the sky-subtracted pixels (frame units per full-resolution pixel).
         n_nonfinite: NaN or Inf pixels of the frame, set to its median for the search.
+        n_dead: pixels of the frame in dead blocks (``bin_px`` square blocks of one value
+            that a neighbour block shares), set to its median for the search.
         measured_noise: the sky's own rms when it was below one electron's shot noise and
             ``noise`` was raised to that (None otherwise).
     """
@@ -223,6 +226,7 @@ class Background:
     cell_px: tuple[float, float]
     noise: float
     n_nonfinite: int = 0
+    n_dead: int = 0
     measured_noise: float | None = None
 
     def _weights(self, coords: np.ndarray, axis: int) -> np.ndarray:
@@ -654,8 +658,9 @@ def _shape_fractions(sums: _DiskSums, cand: _Candidate, flux: float, r_in: float
     out_sum, out_n = (ring_sum - foot_sum, ring_n - foot_n) if ring_n > foot_n else (0.0, 0)
     hole_frac = hole_sum / pos if hole_n else 0.0
     out_frac = out_sum / pos if out_n else 0.0
-    hole_sig = np.sqrt(hole_n * noise ** 2 + max(hole_frac * flux, 0.0) / gain) / pos
-    out_sig = np.sqrt(out_n * noise ** 2 + max(out_frac * flux, 0.0) / gain) / pos
+    with np.errstate(over="ignore"):  # no flux (a peak of noise): infinite, as it should be
+        hole_sig = np.sqrt(hole_n * noise ** 2 + max(hole_frac * flux, 0.0) / gain) / pos
+        out_sig = np.sqrt(out_n * noise ** 2 + max(out_frac * flux, 0.0) / gain) / pos
     return dict(hole_fraction=hole_frac, outside_fraction=out_frac,
                 hole_sigma=float(hole_sig), outside_sigma=float(out_sig))
 
@@ -724,6 +729,11 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
     cfg = config or DetectionConfig()
     a, bg, sub, bad = _frame_and_sky(frame, cfg, name, background)
     cands = _candidates(sub, bg.noise, outer_radius_px, inner_radius_px, cfg)
+    if bg.n_dead:
+        # A peak centred in a dead region is the matched filter reading its edge, not a star.
+        cands = [c for c in cands
+                 if not bad[min(max(round(c.y), 0), bad.shape[0] - 1),
+                            min(max(round(c.x), 0), bad.shape[1] - 1)]]
     half = stamp_px / 2.0
     blend_d = (cfg.blend_distance_px if cfg.blend_distance_px is not None
                else half * np.sqrt(2.0) + outer_radius_px + cfg.spill_px)
@@ -737,8 +747,9 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         reasons, msgs = _judge(m, near, blend_d, a.shape, stamp_px, cfg, name)
         n_bad = _stamp_count(bad, m["x"], m["y"], stamp_px)
         if n_bad:
-            reasons.insert(0, REASON_NONFINITE)
-            msgs.insert(0, f"its stamp holds {n_bad} non-finite pixel(s) of the {name} frame")
+            reasons.insert(0, REASON_BAD_PIXELS)
+            msgs.insert(0, f"its stamp holds {n_bad} non-finite or dead pixel(s) of the "
+                           f"{name} frame")
         status = reasons[0] if reasons else "ok"
         out.append(DetectedDonut(m["x"], m["y"], m["flux"], m["snr"], m["peak_value"],
                                  c.detect_snr, m["hole_fraction"], m["outside_fraction"],
@@ -778,6 +789,10 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     if bad is not None:
         a = np.where(bad, np.median(a[~bad]), a)
         binned = _binned(a, b)
+    dead = _dead_blocks(a, binned, b, cfg.saturation_level)
+    if dead is not None:
+        a = np.where(dead, np.median(a[~dead]), a)
+        binned = _binned(a, b)
     if background is None:
         bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
     else:
@@ -787,7 +802,57 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
         bg = replace(bg, noise=floor, measured_noise=float(bg.noise))
     if bad is not None:
         bg = replace(bg, n_nonfinite=int(bad.sum()))
+    if dead is not None:
+        bg = replace(bg, n_dead=int(dead.sum()))
+        bad = dead if bad is None else bad | dead
     return a, bg, sub, bad
+
+
+# A frame whose blocks are mostly dead by the test below is a model without noise (a
+# simulation with neither sky nor read noise), not a readout with a dead region.
+_DEAD_MAX_FRACTION = 0.5
+
+
+def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | None
+                 ) -> np.ndarray | None:
+    """Full-resolution mask of the frame's dead blocks, or None when it has none.
+
+    A dead block is a ``b`` x ``b`` block whose pixels all hold one value and whose sum a
+    neighbouring block shares (a dead or unread amplifier, a zero-padded border): sky noise
+    never leaves a block constant.  Equal neighbour sums are the cheap first test (by chance
+    they happen for integer counts too, so the blocks are then checked pixel by pixel);
+    constant blocks at or above the saturation level are a saturated star's core, left to
+    its own rejection.  Without them, a step into a dead region is an edge the matched
+    filter takes for dozens of blended sources.
+    """
+    eq_r = binned[:, 1:] == binned[:, :-1]
+    eq_c = binned[1:, :] == binned[:-1, :]
+    cand = np.zeros(binned.shape, bool)
+    cand[:, 1:] |= eq_r
+    cand[:, :-1] |= eq_r
+    cand[1:] |= eq_c
+    cand[:-1] |= eq_c
+    iy, ix = np.nonzero(cand)
+    if not iy.size:
+        return None
+    rows = (iy[:, None] * b + np.arange(b))[:, :, None]
+    cols = (ix[:, None] * b + np.arange(b))[:, None, :]
+    blocks = a[rows, cols]
+    first = blocks[:, 0, 0]
+    const = (blocks == first[:, None, None]).all(axis=(1, 2))
+    if saturation is not None:
+        const &= first < saturation
+    if not const.any() or const.sum() > _DEAD_MAX_FRACTION * binned.size:
+        return None
+    dead_b = np.zeros(binned.shape, bool)
+    dead_b[iy[const], ix[const]] = True
+    mask = np.zeros(a.shape, bool)
+    ny, nx = dead_b.shape[0] * b, dead_b.shape[1] * b
+    mask[:ny, :nx] = np.repeat(np.repeat(dead_b, b, axis=0), b, axis=1)
+    # The rows and columns the binning trims off: dead where they continue a dead block.
+    mask[:ny, nx:] = mask[:ny, nx - 1:nx] & (a[:ny, nx:] == a[:ny, nx - 1:nx])
+    mask[ny:, :] = mask[ny - 1:ny, :] & (a[ny:, :] == a[ny - 1:ny, :])
+    return mask
 
 
 def _candidates(sub: np.ndarray, noise: float, outer_radius_px: float,

@@ -652,11 +652,13 @@ def frame_window(intra_frame: np.ndarray, extra_frame: np.ndarray, intra: HalfCh
 
 
 def _nonfinite_note(bg_in: Background, bg_ex: Background) -> str:
-    """How many NaN or Inf pixels each half had ("" when none): the stars whose stamps
-    hold one were not used."""
-    bad = [f"{n} in the {s} frame" for s, n in (("intra", bg_in.n_nonfinite),
-                                                ("extra", bg_ex.n_nonfinite)) if n]
-    return (f"non-finite pixels: {', '.join(bad)}, set to the frame's median for the search; "
+    """How many NaN, Inf or dead pixels each half had ("" when none): the stars whose
+    stamps hold one were not used."""
+    bad = [f"{what} in the {s} frame" for s, bg in (("intra", bg_in), ("extra", bg_ex))
+           for what in (f"{bg.n_nonfinite} non-finite" if bg.n_nonfinite else "",
+                        f"{bg.n_dead} dead (blocks of one value)" if bg.n_dead else "")
+           if what]
+    return (f"unusable pixels: {', '.join(bad)}, set to the frame's median for the search; "
             "stars whose stamps hold one not used") if bad else ""
 
 
