@@ -96,9 +96,15 @@ def _not_an_image(path: Path, role: str, reason: str) -> Exception:
                       "text table of numbers)")
 
 
+def _head(path: Path, n: int = 4096) -> bytes:
+    """The first ``n`` bytes of a file (what the text tests read)."""
+    with open(path, "rb") as f:
+        return f.read(n)
+
+
 def _sniff(path: Path) -> str | None:
     """Why a file meant as a text image is not one (None when it may be)."""
-    head = path.read_bytes()[:4096]
+    head = _head(path)
     for magic, what in _MAGIC:
         if head.startswith(magic):
             return f"it is {what}"
@@ -160,7 +166,7 @@ def read_pair_image(path: str | Path, role: str, *, text_flip: bool = True) -> P
     text = not is_fits and not name.endswith(".npy")
     return PairInput(p, image, fld, None if dz is None else abs(dz),
                      text_flipped=text and text_flip,
-                     text_not_zemax=text and not _ZEMAX_NUMBER.search(p.read_bytes()[:4096]))
+                     text_not_zemax=text and not _ZEMAX_NUMBER.search(_head(p)))
 
 
 def _header_defocus(pi: PairInput, role: str, inst: Any) -> float:

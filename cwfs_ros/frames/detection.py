@@ -724,7 +724,8 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
         with its status; and the sky model.
 
     Raises:
-        ImageError subclasses for a frame that is not a finite 2-D numeric array.
+        ImageError subclasses for a frame that is not a 2-D numeric array, or has more
+        than ``max_nonfinite_fraction`` of its pixels NaN or Inf (NonFiniteImageError).
     """
     cfg = config or DetectionConfig()
     a, bg, sub, bad = _frame_and_sky(frame, cfg, name, background)

@@ -246,7 +246,8 @@ def _checked_stamp(image: np.ndarray, name: str, outer_radius_px: float,
         raise StampTooSmallError(
             f"{name} stamp {img.shape[1]}x{img.shape[0]} px is too small for a donut of "
             f"radius {outer_radius_px:.1f} px plus {margin_px:.0f} px margin: need at least "
-            f"{need}x{need} px"
+            f"{need}x{need} px (the radius follows from the instrument and the defocal "
+            "offset: check both if the stamp holds the whole donut)"
         )
     if float(img.max() - img.min()) == 0.0:
         raise FlatImageError(f"{name} image is constant ({float(img.flat[0]):g}): no donut")
