@@ -377,6 +377,9 @@ def test_batch_writes_a_table_of_results(tmp_path: Path):
                          format="ascii.ecsv" if name.endswith("ecsv") else "ascii.csv")
         assert list(res["status"]) == ["ok", "error", "flagged"]
         assert 0 <= res["last_update_nm"][0] < 1.0 and np.isnan(res["last_update_nm"][1])
+        # The row that was not estimated has empty cells, not "no caustic, not settled".
+        for name in ("caustic", "settled", "iterations"):
+            assert np.ma.is_masked(res[name][1]) and not np.ma.is_masked(res[name][0]), name
         assert 180.0 < res["Z7_nm"][0] < 200.0
         assert "not an image" in res["error"][1]
         assert np.isnan(res["Z7_nm"][2]) and "caustic" in res["flags"][2]

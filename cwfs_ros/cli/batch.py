@@ -97,13 +97,16 @@ def _row_out(run: Any, allow_flagged: bool) -> dict[str, Any]:
 
 
 def _error_row(message: str) -> dict[str, Any]:
+    import numpy as np
+
     out: dict[str, Any] = {"status": "error", "flags": "", "error": message,
                            "instrument": "", "band": "", "wavelength_nm": float("nan"),
                            "solver": "", "defocal_offset_used_mm": float("nan"),
                            "field_x_deg": float("nan"), "field_y_deg": float("nan")}
     out.update({f"Z{j}_nm": float("nan") for j in NOLL})
-    out.update(caustic=False, settled=False, last_update_nm=float("nan"), swap_check="",
-               iterations=0, warnings="")
+    # Not estimated: these are empty cells (masked), not a caustic-free unsettled estimate.
+    out.update(caustic=np.ma.masked, settled=np.ma.masked, last_update_nm=float("nan"),
+               swap_check="", iterations=np.ma.masked, warnings="")
     return out
 
 
