@@ -371,10 +371,11 @@ def _lower_sigma(values: np.ndarray) -> float:
     return med - lo
 
 
-def _background_from_binned(binned: np.ndarray, b: int, mesh_px: int
-                            ) -> tuple[Background, np.ndarray]:
+def _background_from_binned(binned: np.ndarray, b: int, mesh_px: int,
+                            live: np.ndarray | None = None) -> tuple[Background, np.ndarray]:
     """Background model from a binned frame (see :func:`estimate_background`), and the
-    sky-subtracted binned frame it was measured on."""
+    sky-subtracted binned frame it was measured on; the noise from the ``live`` blocks only
+    (those without pixels set aside), when given."""
     m = max(2, mesh_px // b)  # cell side in binned pixels
     ny, nx = binned.shape
     gy, gx = max(1, ny // m), max(1, nx // m)
@@ -389,7 +390,8 @@ def _background_from_binned(binned: np.ndarray, b: int, mesh_px: int
     # the cells' own spread): lower-half sigma, untouched by sources; white noise of sigma s
     # per full pixel is b s per binned pixel.
     sub = binned - _sky_binned(bg, binned.shape, b)
-    noise = max(_lower_sigma(sub.ravel()), 1e-12) / b
+    noise = max(_lower_sigma(sub[live] if live is not None and live.any() else sub.ravel()),
+                1e-12) / b
     return Background(mesh=mesh, cell_px=bg.cell_px, noise=noise), sub
 
 
@@ -790,12 +792,15 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     if bad is not None:
         a = np.where(bad, np.median(a[~bad]), a)
         binned = _binned(a, b)
-    dead = _dead_blocks(a, binned, b, cfg.saturation_level)
+    dead = _dead_blocks(a, binned, b, cfg.saturation_level, exclude=bad)
     if dead is not None:
         a = np.where(dead, np.median(a[~dead]), a)
         binned = _binned(a, b)
+    aside = dead if bad is None else bad if dead is None else bad | dead
+    # The noise from the blocks that hold no pixel set aside: the filled ones have none.
+    live = None if aside is None else _binned(aside.astype(np.float32), b) == 0
     if background is None:
-        bg, sub = _background_from_binned(binned, b, cfg.mesh_px)
+        bg, sub = _background_from_binned(binned, b, cfg.mesh_px, live)
     else:
         bg, sub = background, binned - _sky_binned(background, binned.shape, b)
     floor = 1.0 / cfg.gain_e_per_adu
@@ -805,25 +810,29 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
         bg = replace(bg, n_nonfinite=int(bad.sum()))
     if dead is not None:
         bg = replace(bg, n_dead=int(dead.sum()))
-        bad = dead if bad is None else bad | dead
-    return a, bg, sub, bad
+    return a, bg, sub, aside
 
 
-# A frame whose blocks are mostly dead by the test below is a model without noise (a
-# simulation with neither sky nor read noise), not a readout with a dead region.
-_DEAD_MAX_FRACTION = 0.5
+# A constant block is dead when its value lies this many robust sigmas of the frame's
+# other blocks from their median: a dead amplifier at 0 or a hot one at full scale does, the
+# sky of a model frame without noise (every block without a donut) does not.
+_DEAD_NSIGMA = 5.0
 
 
-def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | None
-                 ) -> np.ndarray | None:
-    """Full-resolution mask of the frame's dead blocks, or None when it has none.
+def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | None,
+                 exclude: np.ndarray | None = None) -> np.ndarray | None:
+    """Full-resolution mask of the frame's dead pixels, or None when it has none.
 
-    A dead block is a ``b`` x ``b`` block whose pixels all hold one value and whose sum a
-    neighbouring block shares (a dead or unread amplifier, a zero-padded border): sky noise
-    never leaves a block constant.  Equal neighbour sums are the cheap first test (by chance
-    they happen for integer counts too, so the blocks are then checked pixel by pixel);
-    constant blocks at or above the saturation level are a saturated star's core, left to
-    its own rejection.  Without them, a step into a dead region is an edge the matched
+    A dead block is a ``b`` x ``b`` block whose pixels all hold one value that a neighbouring
+    block shares (a dead or unread amplifier, a zero-padded border: sky noise never leaves a
+    block constant), and which stands out from the frame's other blocks (:data:`_DEAD_NSIGMA`):
+    the constant sky of a model frame without noise, where the donuts are the only
+    non-constant blocks, does not.  Equal neighbour sums are the cheap first test (by chance
+    they happen for integer counts too, so the blocks are then checked pixel by pixel).
+    Constant blocks at or above the saturation level are a saturated star's core, left to
+    its own rejection; ``exclude`` (pixels already set aside) marks no block dead.  The
+    pixels of the neighbouring blocks that hold the dead value are dead too: a dead region's
+    edge seldom falls on the block grid.  Without this, its edge is a step the matched
     filter takes for dozens of blended sources.
     """
     eq_r = binned[:, 1:] == binned[:, :-1]
@@ -841,19 +850,51 @@ def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | 
     blocks = a[rows, cols]
     first = blocks[:, 0, 0]
     const = (blocks == first[:, None, None]).all(axis=(1, 2))
+    if exclude is not None:
+        const &= ~exclude[rows, cols].any(axis=(1, 2))
     if saturation is not None:
         const &= first < saturation
-    if not const.any() or const.sum() > _DEAD_MAX_FRACTION * binned.size:
+    if not const.any():
         return None
-    dead_b = np.zeros(binned.shape, bool)
-    dead_b[iy[const], ix[const]] = True
-    mask = np.zeros(a.shape, bool)
-    ny, nx = dead_b.shape[0] * b, dead_b.shape[1] * b
-    mask[:ny, :nx] = np.repeat(np.repeat(dead_b, b, axis=0), b, axis=1)
-    # The rows and columns the binning trims off: dead where they continue a dead block.
-    mask[:ny, nx:] = mask[:ny, nx - 1:nx] & (a[:ny, nx:] == a[:ny, nx - 1:nx])
-    mask[ny:, :] = mask[ny - 1:ny, :] & (a[ny:, :] == a[ny - 1:ny, :])
-    return mask
+    live = np.ones(binned.shape, bool)
+    live[iy[const], ix[const]] = False
+    others = binned[live]
+    if others.size < 16:
+        return None
+    q1, med, q3 = np.percentile(others, [25, 50, 75])
+    sigma = (q3 - q1) / 1.349
+    keep = np.abs(first[const] * b * b - med) > _DEAD_NSIGMA * sigma
+    if not keep.any():
+        return None
+    values = np.full(binned.shape, np.nan)
+    values[iy[const][keep], ix[const][keep]] = first[const][keep]
+    return _dead_pixels(a, values, b)
+
+
+def _dead_pixels(a: np.ndarray, values: np.ndarray, b: int) -> np.ndarray:
+    """Full-resolution mask: the dead blocks (their value in ``values``, NaN elsewhere), and
+    the pixels of the blocks around them, trimmed rows and columns included, that hold the
+    value of a dead neighbour."""
+    ny, nx = a.shape
+    full = np.full(a.shape, np.nan)
+    full[:values.shape[0] * b, :values.shape[1] * b] = np.repeat(
+        np.repeat(values, b, axis=0), b, axis=1)
+    mask = ~np.isnan(full)
+    spread = full.copy()
+    for dy in (-b, 0, b):
+        for dx in (-b, 0, b):
+            if not (dy or dx):
+                continue
+            src = full[max(-dy, 0):ny - max(dy, 0), max(-dx, 0):nx - max(dx, 0)]
+            dst = spread[max(dy, 0):ny - max(-dy, 0), max(dx, 0):nx - max(-dx, 0)]
+            np.copyto(dst, src, where=np.isnan(dst) & ~np.isnan(src))
+    # The trimmed rows and columns take the value of the block beside them.
+    nyb, nxb = values.shape[0] * b, values.shape[1] * b
+    spread[:, nxb:] = np.where(np.isnan(spread[:, nxb:]), spread[:, nxb - 1:nxb],
+                               spread[:, nxb:])
+    spread[nyb:, :] = np.where(np.isnan(spread[nyb:, :]), spread[nyb - 1:nyb, :],
+                               spread[nyb:, :])
+    return mask | (a == spread)
 
 
 def _candidates(sub: np.ndarray, noise: float, outer_radius_px: float,
