@@ -92,8 +92,9 @@ def test_field_outside_the_field_of_view_is_refused():
 
 def test_a_field_at_the_edge_where_the_design_cannot_be_fitted_is_one_error_line():
     """2.05 deg off axis is inside LSST's 2.1 deg field of view, but its pupil is so
-    vignetted that batoid cannot fit the design wavefront's 22 terms: exit 2, one line."""
-    proc = run_cli("estimate", INTRA, EXTRA, "--instrument", "lsst", "--field-intra", "1.45",
+    vignetted that batoid cannot fit the design wavefront's 22 terms: exit 2, one line.
+    (The FAM pair's 200-px stamps hold an LSST donut, so the field is what is refused.)"""
+    proc = run_cli("estimate", *R22, "--instrument", "lsst", "--field-intra", "1.45",
                    "1.45", "--field-extra", "1.45", "1.45")
     assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr
     assert "the design wavefront cannot be fitted at field (1.45, 1.45) deg" in proc.stderr
@@ -325,6 +326,35 @@ def test_fits_headers_give_the_field_and_defocus(tmp_path: Path):
     fits.PrimaryHDU(read_image(INTRA)).writeto(bare)
     proc = run_cli("estimate", bare, pair[1], "--instrument", "paraxial")
     assert proc.returncode == 2 and "no field for the intra image" in proc.stderr
+
+
+def test_unusable_geometry_is_one_error_line_before_any_work(tmp_path: Path):
+    """A FITS keyword that is not a number, a defocal offset of 99 mm (a donut of 4000 px,
+    whose pupil grid would take gigabytes), and a batch cell that is not a number: each is
+    one error line (batch: that row's error, the others written)."""
+    from astropy.io import fits
+
+    hdu = fits.PrimaryHDU(read_image(INTRA))
+    hdu.header["FIELD_X"], hdu.header["FIELD_Y"], hdu.header["DEFOCUS"] = 0.0, 0.0, "-1 mm"
+    bad = tmp_path / "intra.fits"
+    hdu.writeto(bad)
+    proc = run_cli("estimate", bad, EXTRA, *GEOMETRY)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "DEFOCUS = '-1 mm' is not a number (mm)" in proc.stderr
+    proc = run_cli("estimate", INTRA, EXTRA, "--instrument", "paraxial", "--defocal-offset",
+                   "99", "--field-intra", "0", "0", "--field-extra", "0", "0", timeout=20)
+    assert proc.returncode == 2 and "cannot hold a donut of radius 40" in proc.stderr
+    table = tmp_path / "pairs.csv"
+    table.write_text("intra,extra,field_intra_x,field_intra_y,field_extra_x,field_extra_y\n"
+                     f"{INTRA},{EXTRA},abc,0,0,0\n{INTRA},{EXTRA},0,0,0,0\n")
+    proc = run_cli("batch", table, "--out", tmp_path / "out.csv", "--instrument", "paraxial",
+                   timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    from astropy.table import Table
+
+    res = Table.read(tmp_path / "out.csv", format="ascii.csv")
+    assert list(res["status"]) == ["error", "ok"]
+    assert "column field_intra_x: 'abc' is not a number" in res["error"][0]
 
 
 def test_fits_defocus_of_the_wrong_sign_is_refused(tmp_path: Path):

@@ -645,6 +645,16 @@ def test_a_dead_region_costs_only_the_stars_next_to_it(intra_frame, extra_frame)
     np.testing.assert_allclose(res.zernikes_nm, ref.zernikes_nm, atol=1.0)
     assert [d.status for d in res.detections["extra"]] == \
         [d.status for d in ref.detections["extra"]]
+    # A bad column 3 px wide (narrower than a block), far from both stars: the same.
+    xs = sorted(d.x for d in ref.detections["extra"])
+    col = next(x for x in range(100, dead.shape[1] - 100, 10)
+               if all(abs(x - d) > 170 for d in xs))
+    bad_col = extra_frame.image.copy()
+    bad_col[:, col:col + 3] = 0.0
+    res = estimate_corner_frames(intra_frame.image, bad_col, **kw)
+    assert f"{3 * dead.shape[0]} dead (blocks of one value)" in res.summary(), res.summary()
+    assert [d.status for d in res.detections["extra"]] == \
+        [d.status for d in ref.detections["extra"]]
     # Both windows zero-padded, about their centre (the half-chip's reference pixel), into a
     # frame six times their area: the same stars, pairs and wavefront.
     pads = ((1000, 1000), (450, 450))

@@ -25,11 +25,13 @@ Exit status: 0 every row estimated and none flagged; 2 some row could not be est
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
 
 from cwfs_ros.argtypes import finite_float
+from cwfs_ros.errors import ConfigError
 from cwfs_ros.layout import NOLL
 
 __all__ = ["add_batch_parser", "read_pairs", "run_batch"]
@@ -62,7 +64,13 @@ def _value(row: Any, name: str) -> float | None:
     v = row[name]
     if getattr(v, "mask", False) is True or v is None or str(v).strip() in ("", "--"):
         return None
-    return float(v)
+    try:
+        out = float(v)
+    except (TypeError, ValueError):
+        raise ConfigError(f"column {name}: {str(v)!r} is not a number") from None
+    if not math.isfinite(out):
+        raise ConfigError(f"column {name}: {str(v)!r} is not a finite number")
+    return out
 
 
 def _pair_args(row: Any, base: Path) -> dict[str, Any]:

@@ -128,7 +128,12 @@ def _fits_geometry(path: Path) -> tuple[tuple[float, float] | None, float | None
     def key(k: str) -> float | None:
         for h in headers:
             if k in h:
-                return float(h[k])
+                v = h[k]
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    return float(v)
+                raise ConfigError(f"{path}: its FITS header's {k} = {v!r} is not a number "
+                                  f"({'degrees' if k != FITS_KEYS['defocus'] else 'mm'}); "
+                                  "mend the header")
         return None
 
     fx, fy, dz = (key(FITS_KEYS[k]) for k in ("field_x", "field_y", "defocus"))

@@ -47,7 +47,13 @@ import numpy as np
 from scipy import fft as sfft
 from scipy.ndimage import find_objects, label, maximum_filter, median_filter
 
-from cwfs_ros.errors import ConfigError, DonutCutError, ImageError, NonFiniteImageError
+from cwfs_ros.errors import (
+    ConfigError,
+    DonutCutError,
+    FlatImageError,
+    ImageError,
+    NonFiniteImageError,
+)
 from cwfs_ros.wfs.donuts import order_statistics
 from cwfs_ros.wfs.instrument import Instrument
 
@@ -792,7 +798,11 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     if bad is not None:
         a = np.where(bad, np.median(a[~bad]), a)
         binned = _binned(a, b)
-    dead = _dead_blocks(a, binned, b, cfg.saturation_level, exclude=bad)
+    if binned.min() == binned.max() and (a == a.flat[0]).all():
+        raise FlatImageError(f"{name} frame is constant ({float(a.flat[0]):g}"
+                             f"{', where finite' if bad is not None else ''}): no data")
+    dead = _union(_dead_blocks(a, binned, b, cfg.saturation_level, exclude=bad),
+                  _dead_lines(a, binned, b))
     if dead is not None:
         a = np.where(dead, np.median(a[~dead]), a)
         binned = _binned(a, b)
@@ -869,6 +879,47 @@ def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | 
     values = np.full(binned.shape, np.nan)
     values[iy[const][keep], ix[const][keep]] = first[const][keep]
     return _dead_pixels(a, values, b)
+
+
+def _union(*masks: np.ndarray | None) -> np.ndarray | None:
+    have = [m for m in masks if m is not None]
+    return None if not have else have[0] if len(have) == 1 else np.logical_or.reduce(have)
+
+
+def _dead_lines(a: np.ndarray, binned: np.ndarray, b: int, samples: int = 16
+                ) -> np.ndarray | None:
+    """Mask of whole dead columns and rows (a bad column of a CCD: one value from end to
+    end, not the sky level), or None.
+    Narrower than a block, they escape :func:`_dead_blocks`, and their edges read as
+    sources.  Found on ``samples`` rows (columns) first, then checked whole."""
+    mask, sky = None, None
+    for axis in (0, 1):  # columns (constant along axis 0), then rows
+        n = a.shape[axis]
+        pick = np.linspace(0, n - 1, min(samples, n)).astype(int)
+        sample = np.take(a, pick, axis=axis)
+        first = np.take(sample, [0], axis=axis)
+        cand = np.flatnonzero((sample == first).all(axis=axis))
+        if not cand.size:
+            continue
+        if sky is None:
+            q1, med, q3 = np.percentile(binned, [25, 50, 75])
+            sky, sigma = med / (b * b), (q3 - q1) / 1.349 / b  # per full-resolution pixel
+        lines = np.take(a, cand, axis=1 - axis)
+        vals = np.take(lines, 0, axis=axis)
+        whole = (lines == np.expand_dims(vals, axis)).all(axis=axis)
+        # A whole line of one value is no sky unless it is the sky level itself (a model
+        # frame without noise): the test is against the sky estimate's own precision.
+        n_line = a.shape[axis]
+        out = np.abs(vals - sky) > max(_DEAD_NSIGMA * sigma / np.sqrt(n_line),
+                                       1e-9 * max(abs(sky), 1.0))
+        dead = cand[whole & out]
+        if dead.size:
+            mask = np.zeros(a.shape, bool) if mask is None else mask
+            if axis == 0:
+                mask[:, dead] = True
+            else:
+                mask[dead, :] = True
+    return mask
 
 
 def _dead_pixels(a: np.ndarray, values: np.ndarray, b: int) -> np.ndarray:
@@ -961,11 +1012,15 @@ def _judge(m: dict, near: float, blend_d: float, shape: tuple[int, int], stamp_p
         why = f"another source {near:.0f} px away (< {blend_d:.0f} px)"
     elif m["centre_offset"] > lim_cen:
         why = (f"its flux centroid is {m['centre_offset']:.1f} px from its ring's centre "
-               f"(limit {lim_cen:.1f} px): light from an overlapping donut")
+               f"(limit {lim_cen:.1f} px): light from an overlapping donut, or a donut "
+               f"too aberrated for the expected ring (no other source within "
+               f"{min(near, 9999):.0f} px)")
     elif m["hole_fraction"] > lim_hole or m["outside_fraction"] > lim_out:
         why = (f"{m['hole_fraction']:.1%} of its flux in the central hole and "
                f"{m['outside_fraction']:.1%} outside the footprint (limits "
-               f"{lim_hole:.1%}, {lim_out:.1%})")
+               f"{lim_hole:.1%}, {lim_out:.1%}; no other source within "
+               f"{min(near, 9999):.0f} px: an unseen companion, or a donut too aberrated "
+               "for the expected ring)")
     if why:
         reasons.append(REASON_BLENDED)
         msgs.append(f"{at} is blended: {why}")

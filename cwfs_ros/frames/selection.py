@@ -527,7 +527,9 @@ def estimate_corner_frames(intra_frame: np.ndarray, extra_frame: np.ndarray, *, 
         ``inconsistent_pairs``.  An invalid result's Zernikes and uncertainties are NaN.
 
     Raises:
-        ImageError for a frame that is not a finite 2-D array, ConfigError for bad settings.
+        ImageError for a frame that is not a 2-D array, is constant, or has more than
+        ``max_nonfinite_fraction`` of its pixels NaN or Inf (fewer are set aside and
+        counted in the note); ConfigError for bad settings.
     """
     t0 = time.perf_counter()
     cfg = config or load_selection_config(solver=settings.solver)

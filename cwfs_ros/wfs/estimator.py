@@ -43,7 +43,7 @@ from scipy.linalg import solve_triangular
 from scipy.ndimage import distance_transform_edt, gaussian_filter, maximum_filter1d
 
 from cwfs_ros.config import config_dir
-from cwfs_ros.errors import ConfigError, ShapeMismatchError
+from cwfs_ros.errors import ConfigError, ShapeMismatchError, StampTooSmallError
 from cwfs_ros.layout import NOLL
 from cwfs_ros.wfs.blur import blur_reference, check_seeing, image_blur_sigma_px
 from cwfs_ros.wfs.checks import (
@@ -171,7 +171,8 @@ class AlgorithmConfig:
 @lru_cache(maxsize=4)
 def _algorithm_yaml(path: str, mtime: float) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(open(path))
+        with open(path, encoding="utf-8") as f:
+            data = yaml.safe_load(f)
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read algorithm file {path}: {exc}") from exc
     if not isinstance(data, dict):
@@ -790,6 +791,7 @@ def estimate_wavefront(intra: np.ndarray, extra: np.ndarray, *,
         saturation_level=saturation_level, seeing_fwhm_arcsec=seeing_fwhm_arcsec,
         **algorithm)
     a_in, a_ex = _check_pair_shapes(intra, extra)
+    _check_donut_fits(a_in.shape, cfg)
     geom, geom_time_s = _geometry(cfg)
     donuts, swap = _prepare_donuts(a_in, a_ex, cfg, geom)
     loop = _outer_loop(geom, _loop_inputs(donuts, cfg, geom), cfg.algorithm, initial_nm)
@@ -864,6 +866,20 @@ def _check_pair_shapes(intra: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray
             f"intra and extra images differ in shape: {a_in.shape} vs {a_ex.shape}"
         )
     return a_in, a_ex
+
+
+def _check_donut_fits(shape: tuple[int, ...], cfg: EstimateConfig) -> None:
+    """StampTooSmallError before any geometry is built when even the paraxial donut
+    (smaller than the traced one, which the donut checks measure) cannot fit the stamp: the
+    pupil grid grows with the donut, and a defocal offset of tens of mm would build one of
+    gigabytes before the stamp was found too small."""
+    r_d = cfg.instrument.donut_radius_px(cfg.defocal_offset_mm)
+    if len(shape) == 2 and 2.0 * r_d > min(shape):
+        raise StampTooSmallError(
+            f"stamp {shape[1]}x{shape[0]} px is too small: it cannot hold a donut of radius "
+            f"{r_d:.0f} px "
+            f"({cfg.instrument.name} at a defocal offset of {cfg.defocal_offset_mm:g} mm): "
+            "check the defocal offset and the instrument")
 
 
 # -- step 2: prepare the donuts ---------------------------------------------------------

@@ -168,12 +168,17 @@ class Instrument:
         except (TypeError, ValueError):
             raise ConfigError(f"{what} must be a number (mm), got {value!r}") from None
         if not np.isfinite(v) or not 0 < v < MAX_DEFOCAL_OFFSET_MM:
-            hint = f" (micrometres? {v:g} um = {v * 1e-3:g} mm)" if v >= 100 else ""
+            hint = (f" (micrometres? {v:g} um = {v * 1e-3:g} mm)"
+                    if np.isfinite(v) and self.donut_radius_px(v * 1e-3) >= MIN_DONUT_RADIUS_PX
+                    and v < MAX_DEFOCAL_OFFSET_MM * 1e3 else "")
+            if v < 0:
+                hint = " (the offset's size: intra and extra are told by the images' roles)"
             raise ConfigError(f"{what} must be in (0, {MAX_DEFOCAL_OFFSET_MM:g}) mm, got "
                               f"{value!r}{hint}")
         radius = self.donut_radius_px(v)
         if radius < MIN_DONUT_RADIUS_PX:
-            hint = f" (metres? {v:g} m = {v * 1e3:g} mm)" if v < 0.01 else ""
+            hint = (f" (metres? {v:g} m = {v * 1e3:g} mm)"
+                    if self.donut_radius_px(v * 1e3) >= MIN_DONUT_RADIUS_PX and v < 0.1 else "")
             raise ConfigError(
                 f"{what} {v:g} mm gives a donut of radius {radius:.1f} px on {self.name}: "
                 f"curvature sensing needs the pupil resolved, a radius of at least "
