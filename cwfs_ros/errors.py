@@ -49,6 +49,13 @@ class FlatImageError(ImageError):
     reason = "flat_or_empty"
 
 
+class FrameUnitsError(ImageError):
+    """A frame whose sky is quieter than one electron's shot noise: not in electrons, or
+    ``gain_e_per_adu`` wrong; the detection's noise-aware limits would pass blends."""
+
+    reason = "frame_units"
+
+
 class DonutCutError(ImageError):
     reason = "donut_cut_by_edge"
 

@@ -13,7 +13,7 @@ import batoid
 import numpy as np
 import pytest
 
-from cwfs_ros.errors import FrameSizeError
+from cwfs_ros.errors import FrameSizeError, FrameUnitsError
 from cwfs_ros.frames.combination import (
     CombinationConfig,
     combine_pairs,
@@ -676,15 +676,16 @@ def test_a_dead_region_costs_only_the_stars_next_to_it(intra_frame, extra_frame)
 
 
 def test_frames_in_other_units_than_electrons_are_said_to_be(intra_frame, extra_frame):
-    """Frames scaled by 1e-3 (not electrons): the S/N limits, in electrons, find nothing,
-    and the refusal says the sky is quieter than one electron's shot noise and what to set;
+    """Frames scaled by 1e-3 (not electrons): refused, saying the sky is quieter than one
+    electron's shot noise and what to set (the noise-aware blend limits, raised to one
+    electron's, would pass blends: frames x 1e-2 gave valid corners 240 nm off);
     with gain_e_per_adu 1000 (and the saturation level in those units) the corner is the
     same as in electrons."""
     kw = dict(corner="R00", settings=EstimatorSettings(solver="lsq"))
-    res = estimate_corner_frames(intra_frame.image * 1e-3, extra_frame.image * 1e-3,
-                                 config=_config(), **kw)
-    assert not res.valid and res.reason == "no_donuts"
-    assert "below one electron's shot noise" in res.status and "gain_e_per_adu" in res.status
+    with pytest.raises(FrameUnitsError, match="below one electron's shot noise") as err:
+        estimate_corner_frames(intra_frame.image * 1e-3, extra_frame.image * 1e-3,
+                               config=_config(), **kw)
+    assert "gain_e_per_adu" in str(err.value) and err.value.reason == "frame_units"
     ref = estimate_corner_frames(intra_frame.image, extra_frame.image, config=_config(), **kw)
     assert "shot noise" not in ref.summary()
     det = _config().detection.with_overrides(gain_e_per_adu=1000.0,

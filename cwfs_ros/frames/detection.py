@@ -51,6 +51,7 @@ from cwfs_ros.errors import (
     ConfigError,
     DonutCutError,
     FlatImageError,
+    FrameUnitsError,
     ImageError,
     NonFiniteImageError,
 )
@@ -767,6 +768,23 @@ def detect_donuts(frame: np.ndarray, *, outer_radius_px: float, inner_radius_px:
     return out, bg
 
 
+# A sky noise below this fraction of one electron's shot noise, yet not zero (a model frame
+# without noise has none), is no frame in electrons: real sky and read noise are several.
+_UNITS_FRACTION = 0.5
+
+
+def _check_units(noise: float, floor: float, gain: float, name: str) -> None:
+    """FrameUnitsError for a sky noise that is there but below ``_UNITS_FRACTION`` of one
+    electron's shot noise (frame units): the noise-aware blend limits would be raised to
+    one electron's and let blends through (frames x 1e-2 gave valid corners 240 nm off)."""
+    if 1e-6 * floor < noise < _UNITS_FRACTION * floor:
+        raise FrameUnitsError(
+            f"{name} frame's sky noise is {noise:.3g} per pixel, below one electron's shot "
+            f"noise at gain_e_per_adu {gain:g}: the frame is not in electrons. Set "
+            "detection.gain_e_per_adu (electrons per frame unit), and saturation_level in "
+            "frame units, in the selection file")
+
+
 def _stamp_count(mask: np.ndarray | None, x: float, y: float, stamp_px: int) -> int:
     """How many of ``mask``'s pixels the stamp centred on (x, y) holds (as
     :func:`cut_stamp` cuts it; 0 for no mask)."""
@@ -815,6 +833,7 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
         bg, sub = background, binned - _sky_binned(background, binned.shape, b)
     floor = 1.0 / cfg.gain_e_per_adu
     if not bg.noise >= floor:
+        _check_units(bg.noise, floor, cfg.gain_e_per_adu, name)
         bg = replace(bg, noise=floor, measured_noise=float(bg.noise))
     if bad is not None:
         bg = replace(bg, n_nonfinite=int(bad.sum()))
