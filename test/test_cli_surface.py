@@ -263,7 +263,7 @@ def test_text_images_are_said_to_be_flipped_and_a_refusal_names_the_flip(tmp_pat
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     np.testing.assert_allclose(out["zernikes_nm"], ref["zernikes_nm"], atol=1e-6)
-    assert "text_images" not in {c["name"] for c in out["checks"]}
+    assert {c["name"]: c["outcome"] for c in out["checks"]}["text_images"] == "as stored"
     assert out["inputs"]["intra"]["text_flipped"] is False
     # On axis no check can see the flip: text that does not look like a ZEMAX export,
     # flipped by default, is a WARNING (the ZEMAX pairs' is not: test above).
@@ -355,6 +355,21 @@ def test_unusable_geometry_is_one_error_line_before_any_work(tmp_path: Path):
     res = Table.read(tmp_path / "out.csv", format="ascii.csv")
     assert list(res["status"]) == ["error", "ok"]
     assert "column field_intra_x: 'abc' is not a number" in res["error"][0]
+    # A misspelt optional column is kept as the user's own, and said not to be read.
+    table.write_text("intra,extra,field_intra_x,field_intra_y,field_extra_x,field_extra_y,"
+                     f"defocal_ofset_mm\n{INTRA},{EXTRA},0,0,0,0,1.0\n")
+    proc = run_cli("batch", table, "--out", tmp_path / "out.csv", "--instrument", "paraxial",
+                   timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert ("column 'defocal_ofset_mm' is not read (did you mean 'defocal_offset_mm'?)"
+            in proc.stderr + proc.stdout)
+    # FIELD_X without FIELD_Y: said so.
+    hdu = fits.PrimaryHDU(read_image(INTRA))
+    hdu.header["FIELD_X"] = 0.0
+    half = tmp_path / "half.fits"
+    hdu.writeto(half)
+    proc = run_cli("estimate", half, EXTRA, "--instrument", "paraxial")
+    assert proc.returncode == 2 and "has FIELD_X but not FIELD_Y" in proc.stderr
 
 
 def test_fits_defocus_of_the_wrong_sign_is_refused(tmp_path: Path):
@@ -373,7 +388,7 @@ def test_fits_defocus_out_of_range_names_the_header(tmp_path: Path):
     assert "micrometres? 1000 um = 1 mm" in proc.stderr and "Traceback" not in proc.stderr
     proc = run_cli("estimate", *pair, "--instrument", "paraxial", "--defocal-offset", "1.0")
     assert proc.returncode == 0, proc.stderr
-    assert "defocal offset 1 mm (command line)" in proc.stdout
+    assert "defocal offset 1 mm (command line; the FITS header says 1000 mm)" in proc.stdout
     # In metres: a donut of a tenth of a pixel, said so (the geometry cannot be built).
     pair = _fits_pair(tmp_path / "m", defocus=(-0.001, 0.001))
     proc = run_cli("estimate", *pair, "--instrument", "paraxial")

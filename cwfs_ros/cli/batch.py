@@ -58,6 +58,23 @@ def read_pairs(path: Path) -> Any:
     return table
 
 
+def _column_hints(colnames: list[str]) -> list[str]:
+    """For each column that is none of the table's own but nearly one that is missing (a
+    misspelling, read as a column of the user's and kept as such): the name it looks like."""
+    from difflib import get_close_matches
+
+    known = ("intra", "extra", *_OPTIONAL)
+    absent = [k for k in known if k not in colnames]
+    out = []
+    for c in colnames:
+        if c in known:
+            continue
+        near = get_close_matches(c.lower(), absent, n=1, cutoff=0.75)
+        if near:
+            out.append(f"batch: column {c!r} is not read (did you mean {near[0]!r}?)")
+    return out
+
+
 def _value(row: Any, name: str) -> float | None:
     if name not in row.colnames:
         return None
@@ -128,6 +145,8 @@ def run_batch(table_path: Path, out_path: Path, options: dict[str, Any],
     from cwfs_ros.errors import CwfsError
 
     pairs = read_pairs(table_path)
+    for hint in _column_hints(pairs.colnames):
+        say(hint)
     rows = []
     for k, row in enumerate(pairs):
         try:

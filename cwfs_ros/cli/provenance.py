@@ -81,6 +81,8 @@ class PairInput:
     text_flipped: bool = False
     #: A text image whose numbers are not written as the ZEMAX exports write them.
     text_not_zemax: bool = False
+    #: A text image read as stored (``--no-text-flip``).
+    text_as_stored: bool = False
 
     def describe(self) -> dict[str, Any]:
         data = self.path.read_bytes()
@@ -137,6 +139,11 @@ def _fits_geometry(path: Path) -> tuple[tuple[float, float] | None, float | None
         return None
 
     fx, fy, dz = (key(FITS_KEYS[k]) for k in ("field_x", "field_y", "defocus"))
+    if (fx is None) != (fy is None):
+        have, lack = ((FITS_KEYS["field_x"], FITS_KEYS["field_y"]) if fy is None
+                      else (FITS_KEYS["field_y"], FITS_KEYS["field_x"]))
+        raise ConfigError(f"{path}: its FITS header has {have} but not {lack}: give both, "
+                          "or the field on the command line")
     fld = (fx, fy) if fx is not None and fy is not None else None
     return fld, dz
 
@@ -170,7 +177,7 @@ def read_pair_image(path: str | Path, role: str, *, text_flip: bool = True) -> P
                          "(are intra and extra exchanged?)")
     text = not is_fits and not name.endswith(".npy")
     return PairInput(p, image, fld, None if dz is None else abs(dz),
-                     text_flipped=text and text_flip,
+                     text_flipped=text and text_flip, text_as_stored=text and not text_flip,
                      text_not_zemax=text and not _ZEMAX_NUMBER.search(_head(p)))
 
 
@@ -228,7 +235,7 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
               f"{inst.field_radius_deg:g} deg"),
         Check("image_checks", "pass", "finite, not flat, not cut, large enough, not "
               "saturated (each would have refused the pair)"),
-        _swap(result.swap_check),
+        _swap(result.swap_check, inst.name),
         Check("caustic", "fail" if result.caustic else "pass",
               "the compensation folded into caustic: the numbers are the last good "
               "iteration's" if result.caustic else "no caustic", flags=bool(result.caustic)),
@@ -240,15 +247,16 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
     ]
 
 
-def _swap(outcome: str) -> Check:
+def _swap(outcome: str, instrument: str) -> Check:
     """The swap check's outcome, and for ``off`` what then goes unseen."""
     if outcome != "off":
         return Check("swap_check", outcome, "intra/extra told apart by the vignetting, and "
                      "each image's orientation checked against it")
+    where = (" (for LSST within about 1.3 deg of the axis)" if instrument.startswith("lsst")
+             else "")
     return Check("swap_check", "off", "the vignetting at this field is too weak to tell intra "
-                 "from extra or a turned image (for LSST within about 1.3 deg of the axis), "
-                 "or the check is disabled: exchanged, turned or mirrored images are not "
-                 "detected here")
+                 f"from extra or a turned image{where}, or the check is disabled: exchanged, "
+                 "turned or mirrored images are not detected here")
 
 
 def _settled(result: Any, last_nm: float) -> Check:
@@ -378,6 +386,10 @@ def _input_notes(inputs: dict[str, PairInput], inst: Any, band: str,
     optics are the band's filter, traced at that wavelength)."""
     out = []
     flipped = [s for s in inputs if inputs[s].text_flipped]
+    stored = [s for s in inputs if inputs[s].text_as_stored]
+    if stored:
+        out.append(Check("text_images", "as stored", f"{' and '.join(stored)} read from text "
+                         "as stored (--no-text-flip): row 0 is the smallest y"))
     if flipped:
         what = (f"{' and '.join(flipped)} read from text with the rows reversed, as the ZEMAX "
                 "set stores them (--no-text-flip reads them as stored)")
@@ -438,7 +450,10 @@ def run_pair(intra: str | Path, extra: str | Path, *, field_intra: Any = None,
 
 def _defocus_source(inputs: dict[str, PairInput], given_mm: float | None, inst: Any) -> str:
     if given_mm is not None:
-        return "command line"
+        other = sorted({f"{pi.defocus_mm:g}" for pi in inputs.values()
+                        if pi.defocus_mm is not None and pi.defocus_mm != float(given_mm)})
+        return ("command line" + (f"; the FITS header says {', '.join(other)} mm"
+                                  if other else ""))
     headers = [pi.path.name for pi in inputs.values() if pi.defocus_mm is not None]
     return f"FITS header {', '.join(headers)}" if headers else f"instrument {inst.name}"
 
