@@ -196,6 +196,8 @@ def test_a_caustic_estimate_exits_3():
     (b"\x89PNG\r\n\x1a\n" + bytes(64), "it is a PNG picture"),
     (b"1 2 3\n\x00\x01\x02\n", "binary data"),
     (b"one two\nthree four\n", "could not convert"),
+    (b"1 2 3\n4 5\n6 7 8\n", "its rows differ in length: row 2 has 2 values, the rows before "
+                            "it 3"),
 ])
 def test_not_an_image_says_why(tmp_path: Path, content: bytes, reason: str):
     bad = tmp_path / "donut.png"

@@ -9,6 +9,7 @@ docs/cli.md), so :func:`read_image` applies the same flip to ``.txt`` files.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,17 @@ import numpy as np
 from cwfs_ros.errors import ImageError
 
 __all__ = ["read_image"]
+
+
+def _plain(exc: Exception) -> str:
+    """The reading error in the terms of an image: numpy's advice for a ragged table
+    (``usecols``) is about tables, not images."""
+    text = str(exc)
+    m = re.match(r"the number of columns changed from (\d+) to (\d+) at row (\d+)", text)
+    if m:
+        return (f"its rows differ in length: row {m.group(3)} has {m.group(2)} values, the "
+                f"rows before it {m.group(1)}")
+    return text
 
 
 def read_image(path: str | Path, *, text_flip: bool = True) -> np.ndarray:
@@ -49,7 +61,7 @@ def read_image(path: str | Path, *, text_flip: bool = True) -> np.ndarray:
     except ImageError:
         raise
     except (OSError, ValueError) as exc:
-        raise ImageError(f"cannot read image {p}: {exc}") from exc
+        raise ImageError(f"cannot read image {p}: {_plain(exc)}") from exc
     data = np.asarray(data)
     if data.ndim != 2 or not np.issubdtype(data.dtype, np.number):
         raise ImageError(f"{p}: expected a 2-D numeric image, got shape {data.shape} "
