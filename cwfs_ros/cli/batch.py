@@ -114,8 +114,9 @@ def _row_out(run: Any, allow_flagged: bool) -> dict[str, Any]:
         "field_x_deg": r.field_deg[0], "field_y_deg": r.field_deg[1]}
     for j, z in zip(NOLL, r.zernikes_nm, strict=True):
         out[f"Z{j}_nm"] = float("nan") if hide else float(z)
-    last = float(r.residual_rms_nm[-1]) if len(r.residual_rms_nm) else float("nan")
-    out.update(caustic=bool(r.caustic), settled=bool(r.converged), last_update_nm=last,
+    from cwfs_ros.cli.provenance import last_update_nm
+
+    out.update(caustic=bool(r.caustic), settled=bool(r.converged), last_update_nm=last_update_nm(r),
                swap_check=r.swap_check, iterations=int(r.iterations),
                warnings=" ".join(c.name for c in run.checks if c.warning))
     return out

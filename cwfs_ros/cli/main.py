@@ -480,19 +480,19 @@ def _run_pair_demo(args: argparse.Namespace) -> int:
                                   subtract_sky=True, centre=centre, rng=rng)
                      for dz in (-1.5, 1.5))
 
-    def estimate() -> Any:
+    def estimate(intra: np.ndarray, extra: np.ndarray) -> Any:
         return estimate_wavefront(intra, extra, field_intra_deg=field, field_extra_deg=field,
                                   solver=args.solver)
 
     intra, extra = render("chief")
     try:
-        result = estimate()
+        result = estimate(intra, extra)
     except DonutCutError as exc:
         # Stamps are cut around the donut's light in a real pipeline; a large perturbation
         # moves the donut far from its chief ray, off the stamp centred there.
         print(f"{exc}: rendered again, each stamp centred on its donut's light", flush=True)
         intra, extra = render("centroid")
-        result = estimate()
+        result = estimate(intra, extra)
     print(format_result(result, table=False))
     print(format_checks(assess(result, load_instrument("lsst"), 1.5)))
     err = result.zernikes_nm - truth

@@ -40,6 +40,7 @@ __all__ = [
     "FITS_KEYS",
     "Check",
     "format_geometry",
+    "last_update_nm",
     "PairInput",
     "assess",
     "plausible_limit_nm",
@@ -229,7 +230,7 @@ def assess(result: Any, inst: Any, defocal_offset_mm: float) -> list[Check]:
     limit = plausible_limit_nm(inst, defocal_offset_mm)
     dep = np.asarray(result.zernikes_nm) - np.asarray(result.intrinsic_nm)
     worst = int(np.argmax(np.abs(dep)))
-    last = float(result.residual_rms_nm[-1]) if len(result.residual_rms_nm) else float("nan")
+    last = last_update_nm(result)
     return [
         Check("field_of_view", "pass", f"field {r:.3f} deg off axis, within "
               f"{inst.field_radius_deg:g} deg"),
@@ -257,6 +258,11 @@ def _swap(outcome: str, instrument: str) -> Check:
     return Check("swap_check", "off", "the vignetting at this field is too weak to tell intra "
                  f"from extra or a turned image{where}, or the check is disabled: exchanged, "
                  "turned or mirrored images are not detected here")
+
+
+def last_update_nm(result: Any) -> float:
+    """The outer loop's last update (nm rms over Z4..Z_jmax), NaN if it made none."""
+    return float(result.residual_rms_nm[-1]) if len(result.residual_rms_nm) else float("nan")
 
 
 def _settled(result: Any, last_nm: float) -> Check:

@@ -213,6 +213,11 @@ class DetectedDonut:
         return self.status == "ok"
 
 
+# A sky noise below this fraction of one electron's shot noise is none at all (a model
+# frame without noise; float rounding leaves ~1e-13).
+_NO_NOISE_FRACTION = 1e-6
+
+
 @dataclass(frozen=True)
 class Background:
     """Sky model of a frame.
@@ -235,6 +240,14 @@ class Background:
     n_nonfinite: int = 0
     n_dead: int = 0
     measured_noise: float | None = None
+
+    @property
+    def quiet_sky(self) -> bool:
+        """The sky had noise, but less than one electron's shot noise (to which ``noise``
+        was raised): the frame's units may not be electrons.  A model frame without noise
+        has none at all, and is not quiet in this sense."""
+        return (self.measured_noise is not None
+                and self.measured_noise > _NO_NOISE_FRACTION * self.noise)
 
     def _weights(self, coords: np.ndarray, axis: int) -> np.ndarray:
         """Bilinear weights (len(coords), mesh cells along ``axis``).
@@ -777,7 +790,7 @@ def _check_units(noise: float, floor: float, gain: float, name: str) -> None:
     """FrameUnitsError for a sky noise that is there but below ``_UNITS_FRACTION`` of one
     electron's shot noise (frame units): the noise-aware blend limits would be raised to
     one electron's and let blends through (frames x 1e-2 gave valid corners 240 nm off)."""
-    if 1e-6 * floor < noise < _UNITS_FRACTION * floor:
+    if _NO_NOISE_FRACTION * floor < noise < _UNITS_FRACTION * floor:
         raise FrameUnitsError(
             f"{name} frame's sky noise is {noise:.3g} per pixel, below one electron's shot "
             f"noise at gain_e_per_adu {gain:g}: the frame is not in electrons. Set "
@@ -785,22 +798,28 @@ def _check_units(noise: float, floor: float, gain: float, name: str) -> None:
             "frame units, in the selection file")
 
 
+def _stamp_origin(x: float, y: float, stamp_px: int) -> tuple[int, int]:
+    """The frame pixel (col, row) of the ``[0, 0]`` of the stamp centred, to the nearest
+    pixel, on (x, y)."""
+    return int(round(x - (stamp_px - 1) / 2.0)), int(round(y - (stamp_px - 1) / 2.0))
+
+
 def _stamp_count(mask: np.ndarray | None, x: float, y: float, stamp_px: int) -> int:
     """How many of ``mask``'s pixels the stamp centred on (x, y) holds (as
     :func:`cut_stamp` cuts it; 0 for no mask)."""
     if mask is None:
         return 0
-    x0 = int(round(x - (stamp_px - 1) / 2.0))
-    y0 = int(round(y - (stamp_px - 1) / 2.0))
+    x0, y0 = _stamp_origin(x, y, stamp_px)
     return int(np.count_nonzero(mask[max(y0, 0):max(y0 + stamp_px, 0),
                                      max(x0, 0):max(x0 + stamp_px, 0)]))
 
 
 def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
                    background: Background | None
-                   ) -> tuple[np.ndarray, Background, np.ndarray]:
-    """(frame, sky model, binned sky-subtracted frame, mask of its non-finite pixels or
-    None) of a checked frame; the frame returned has those pixels set to its median.
+                   ) -> tuple[np.ndarray, Background, np.ndarray, np.ndarray | None]:
+    """(frame, sky model, binned sky-subtracted frame, mask of the pixels set aside or None)
+    of a checked frame: its NaN, Inf and dead pixels are set to its median
+    (:func:`_set_aside`), and counted on the sky model.
 
     The pixel noise is taken as at least one electron's shot noise: a sky without noise (a
     simulation with neither sky nor read noise) would otherwise make the filter's float
@@ -811,7 +830,29 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     if min(a.shape) < 4 * cfg.bin_px:
         raise ImageError(f"{name} frame {a.shape[1]}x{a.shape[0]} px is too small")
     b = cfg.bin_px
-    binned = _binned(a, b)
+    a, binned, bad, dead = _set_aside(a, _binned(a, b), cfg, name)
+    aside = _union(bad, dead)
+    # The noise from the blocks that hold no pixel set aside: the filled ones have none.
+    live = None if aside is None else _binned(aside.astype(np.float32), b) == 0
+    if background is None:
+        bg, sub = _background_from_binned(binned, b, cfg.mesh_px, live)
+    else:
+        bg, sub = background, binned - _sky_binned(background, binned.shape, b)
+    floor = 1.0 / cfg.gain_e_per_adu
+    if not bg.noise >= floor:
+        _check_units(bg.noise, floor, cfg.gain_e_per_adu, name)
+        bg = replace(bg, noise=floor, measured_noise=float(bg.noise))
+    bg = replace(bg, n_nonfinite=0 if bad is None else int(bad.sum()),
+                 n_dead=0 if dead is None else int(dead.sum()))
+    return a, bg, sub, aside
+
+
+def _set_aside(a: np.ndarray, binned: np.ndarray, cfg: DetectionConfig, name: str
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(frame, its binned sums, NaN/Inf mask, dead mask): the NaN and Inf pixels (up to
+    ``max_nonfinite_fraction``), then the dead ones, set to the median of the others; a
+    frame of one value is refused, as it holds no data."""
+    b = cfg.bin_px
     bad = _nonfinite(a, binned, b, name, cfg.max_nonfinite_fraction)
     if bad is not None:
         a = np.where(bad, np.median(a[~bad]), a)
@@ -824,22 +865,7 @@ def _frame_and_sky(frame: np.ndarray, cfg: DetectionConfig, name: str,
     if dead is not None:
         a = np.where(dead, np.median(a[~dead]), a)
         binned = _binned(a, b)
-    aside = dead if bad is None else bad if dead is None else bad | dead
-    # The noise from the blocks that hold no pixel set aside: the filled ones have none.
-    live = None if aside is None else _binned(aside.astype(np.float32), b) == 0
-    if background is None:
-        bg, sub = _background_from_binned(binned, b, cfg.mesh_px, live)
-    else:
-        bg, sub = background, binned - _sky_binned(background, binned.shape, b)
-    floor = 1.0 / cfg.gain_e_per_adu
-    if not bg.noise >= floor:
-        _check_units(bg.noise, floor, cfg.gain_e_per_adu, name)
-        bg = replace(bg, noise=floor, measured_noise=float(bg.noise))
-    if bad is not None:
-        bg = replace(bg, n_nonfinite=int(bad.sum()))
-    if dead is not None:
-        bg = replace(bg, n_dead=int(dead.sum()))
-    return a, bg, sub, aside
+    return a, binned, bad, dead
 
 
 # A constant block is dead when its value lies this many robust sigmas of the frame's
@@ -1013,8 +1039,7 @@ def _judge(m: dict, near: float, blend_d: float, shape: tuple[int, int], stamp_p
     reasons: list[str] = []
     msgs: list[str] = []
     # Edge: the stamp centred on the donut (as cut_stamp cuts it) must lie in the frame.
-    x0 = int(round(m["x"] - (stamp_px - 1) / 2.0))
-    y0 = int(round(m["y"] - (stamp_px - 1) / 2.0))
+    x0, y0 = _stamp_origin(m["x"], m["y"], stamp_px)
     if x0 < 0 or y0 < 0 or x0 + stamp_px > nx or y0 + stamp_px > ny:
         reasons.append(REASON_EDGE)
         msgs.append(f"{at}: its {stamp_px} px stamp extends beyond the {nx}x{ny} frame")
@@ -1066,8 +1091,7 @@ def cut_stamp(frame: np.ndarray, x: float, y: float, stamp_px: int,
         DonutCutError if the stamp does not fit in the frame.
     """
     ny, nx = frame.shape
-    x0 = int(round(x - (stamp_px - 1) / 2.0))
-    y0 = int(round(y - (stamp_px - 1) / 2.0))
+    x0, y0 = _stamp_origin(x, y, stamp_px)
     if x0 < 0 or y0 < 0 or x0 + stamp_px > nx or y0 + stamp_px > ny:
         raise DonutCutError(f"stamp of {stamp_px} px at (col {x:.1f}, row {y:.1f}) extends "
                             f"beyond the {nx}x{ny} frame")

@@ -685,8 +685,7 @@ def _no_donuts_message(sides: dict[str, tuple[list[StarStamp], list[DetectedDonu
     detail = "; ".join(f"{s}: {sum(not d.ok for d in dets)} detected and rejected"
                        for s, dets, _ in empty)
     which = " and ".join(s for s, _, _ in empty)
-    quiet = [f"{s} {bg.measured_noise:.3g}" for s, _, bg in empty
-             if bg.measured_noise is not None and bg.measured_noise > 0]
+    quiet = [f"{s} {bg.measured_noise:.3g}" for s, _, bg in empty if bg.quiet_sky]
     units = (f". The sky noise ({', '.join(quiet)} per pixel) is below one electron's shot "
              f"noise at gain_e_per_adu {gain:g}: a frame in other units than electrons needs "
              "detection.gain_e_per_adu (electrons per unit), and saturation_level in its "

@@ -168,11 +168,12 @@ class Instrument:
         except (TypeError, ValueError):
             raise ConfigError(f"{what} must be a number (mm), got {value!r}") from None
         if not np.isfinite(v) or not 0 < v < MAX_DEFOCAL_OFFSET_MM:
-            hint = (f" (micrometres? {v:g} um = {v * 1e-3:g} mm)"
-                    if np.isfinite(v) and self.donut_radius_px(v * 1e-3) >= MIN_DONUT_RADIUS_PX
-                    and v < MAX_DEFOCAL_OFFSET_MM * 1e3 else "")
+            hint = ""
             if v < 0:
                 hint = " (the offset's size: intra and extra are told by the images' roles)"
+            elif (np.isfinite(v) and v < MAX_DEFOCAL_OFFSET_MM * 1e3
+                  and self.donut_radius_px(v * 1e-3) >= MIN_DONUT_RADIUS_PX):
+                hint = f" (micrometres? {v:g} um = {v * 1e-3:g} mm)"
             raise ConfigError(f"{what} must be in (0, {MAX_DEFOCAL_OFFSET_MM:g}) mm, got "
                               f"{value!r}{hint}")
         radius = self.donut_radius_px(v)
