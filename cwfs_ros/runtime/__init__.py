@@ -3,6 +3,7 @@
 * :mod:`.images`: decoding of ``sensor_msgs/Image`` payloads with their pixel checks;
 * :mod:`.visits`: image records, the pairing buffer and the visit assembler;
 * :mod:`.corner_pool`: corner jobs (stamp or frame) and the worker pool that runs them;
+* :mod:`.shared_frames`: a frames job's frames handed to its worker in shared memory;
 * :mod:`.pipeline`: wavefront_node's decisions from image to visit vector, which the node and
   the offline replay both call;
 * :mod:`.workload`: the workers' measured costs and caches, the visit-timeout promise and

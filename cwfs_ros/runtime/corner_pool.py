@@ -11,9 +11,10 @@ Workers are started with the ``forkserver`` method (``spawn`` where it is unavai
 parent may be a ROS process with middleware threads, which must not be ``fork()``-ed. The fork
 server pre-imports the estimator, so a worker is ready in well under a second.
 
-Everything that crosses the process boundary is a small picklable dataclass: a
-:class:`CornerJob` in, a :class:`CornerOutcome` out. A job never raises in the worker: bad
-images and configuration come back as an invalid outcome whose ``status`` names the problem.
+What crosses the process boundary is a small picklable dataclass: a :class:`CornerJob` in,
+a :class:`CornerOutcome` out; a frames job's two frames travel in shared memory
+(:mod:`.shared_frames`). A job never raises in the worker: bad images and configuration
+come back as an invalid outcome whose ``status`` names the problem.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import numpy as np
 
 from cwfs_ros.errors import ConfigError, CwfsError
 from cwfs_ros.layout import NOLL as _NOLL
+from cwfs_ros.runtime.shared_frames import FrameBlocks, SharedFrameJob
 from cwfs_ros.wfs.orientation import Orientation, orient_image, pad_stamp
 from cwfs_ros.wfs.settings import EstimatorSettings
 
@@ -243,9 +245,22 @@ def frame_outcome(res: Any) -> CornerOutcome:
 
 
 def run_frame_job(job: Any) -> CornerOutcome:
-    """Estimate one corner from its two frames (runs in a worker process; never raises)."""
+    """Estimate one corner from its two frames (runs in a worker process; never raises).
+
+    ``job`` is a :class:`~cwfs_ros.frames.selection.CornerFrameJob`, or a
+    :class:`.shared_frames.SharedFrameJob` whose frames are read from shared memory first.
+    """
     from cwfs_ros.frames.selection import run_corner_frame_job
 
+    if isinstance(job, SharedFrameJob):
+        try:
+            job = job.load()
+        except OSError as exc:
+            nan_field = (float("nan"), float("nan"))
+            return invalid_outcome(job.corner, job.stamp_ns, "internal_error",
+                                   f"the frames could not be read from shared memory "
+                                   f"({type(exc).__name__}: {exc})", nan_field, nan_field,
+                                   job.job.settings.solver)
     return _with_caches(frame_outcome(run_corner_frame_job(job)))
 
 
@@ -453,6 +468,8 @@ class CornerPool:
         self._queued = [0] * self.n_workers  # jobs submitted to each slot and not finished
         self.restarts = 0
         self._closed = False
+        # A frames job's frames in shared memory: one idle block kept per served corner.
+        self._blocks = FrameBlocks(keep=len(self.corners))
 
     def _slot(self, i: int) -> ProcessPoolExecutor:
         with self._lock:
@@ -523,10 +540,23 @@ class CornerPool:
         frames) on its corner's worker; the future's result is a :class:`CornerOutcome`
         carrying the combination of every usable donut pair (``n_pairs``,
         ``uncertainty_nm``). A dead worker gives ``worker_crashed``, as for :meth:`submit`.
+
+        The frames go to the worker through shared memory (:mod:`.shared_frames`), released
+        when the future is done; through the pipe where no block can be made.
         """
         nan_field = (float("nan"), float("nan"))
-        return self._guarded(job.corner, job.stamp_ns, run_frame_job, job,
-                             (nan_field, nan_field), job.settings.solver)
+        shared = self._blocks.share(job)
+        try:
+            fut = self._guarded(job.corner, job.stamp_ns, run_frame_job,
+                                job if shared is None else shared[0], (nan_field, nan_field),
+                                job.settings.solver)
+        except BaseException:
+            if shared is not None:
+                self._blocks.give_back(shared[1])
+            raise
+        if shared is not None:  # the worker has copied the frames out once the job is done
+            fut.add_done_callback(lambda _f, shm=shared[1]: self._blocks.give_back(shm))
+        return fut
 
     def _guarded(self, corner: str, stamp_ns: int, fn: Callable, job: Any,
                  fields: tuple[tuple[float, float], tuple[float, float]],
@@ -576,3 +606,4 @@ class CornerPool:
         for ex in slots:
             if ex is not None:
                 ex.shutdown(wait=wait, cancel_futures=True)
+        self._blocks.close()  # blocks of jobs still running are released when they end

@@ -218,14 +218,30 @@ def inspect_pixels(image: np.ndarray, encoding: str, *, full_scale_ok: bool = Fa
         if n_top and not full_scale_ok:
             raise ImageDecodeError("saturated", full_scale_message(n_top, encoding))
         return n_top
-    finite = image[np.isfinite(image)]
-    peak = float(np.max(np.abs(finite))) if finite.size else 0.0
+    peak = _finite_peak(image)
     if peak > 0 and not SCALE_RANGE[0] <= peak <= SCALE_RANGE[1]:
         raise ImageDecodeError(
             "bad_scale", f"largest pixel magnitude {peak:.3g} is outside "
             f"[{SCALE_RANGE[0]:.0e}, {SCALE_RANGE[1]:.0e}]: no detector gives such values, "
             "and their squares underflow or overflow; send counts, electrons or photons")
     return 0
+
+
+def _finite_peak(image: np.ndarray) -> float:
+    """The largest magnitude of the finite pixels (0 when there are none).
+
+    An image without NaN or Inf gives it from its extremes: two passes and no copy, where
+    selecting the finite pixels first copies the frame twice (~25 of a 2-Mpixel frame's
+    ~40 ms in wavefront_node, one frame after the other). An extreme that is not finite
+    says there are such pixels, and only then are they selected.
+    """
+    if image.size == 0:
+        return 0.0
+    lo, hi = float(np.min(image)), float(np.max(image))
+    if np.isfinite(lo) and np.isfinite(hi):
+        return max(abs(lo), abs(hi))
+    finite = image[np.isfinite(image)]
+    return float(np.max(np.abs(finite))) if finite.size else 0.0
 
 
 def full_scale(encoding: str) -> float | None:

@@ -1,0 +1,178 @@
+"""Hand a frames job's two frames to its worker process through shared memory (no ROS).
+
+A frames job carries two decoded half-chip frames (2000 x 1000 float64: 32 MB a corner).
+Pickled through the worker's pipe, they cost the node ~100 ms of pickling and pipe writes a
+corner, holding the GIL against the decoding of the next images, and several hundred ms on
+the first visit after start (docs/performance.md, Frames). Here the node copies them once
+into a POSIX shared-memory block and sends only its name; the worker copies them out and
+lets go of the block. The node takes the block back when the job's future is done,
+whatever the outcome (a dead worker included), and reuses it for a later job
+(:class:`FrameBlocks`). Blocks are registered with multiprocessing's resource tracker, which
+unlinks them if the node itself dies.
+
+A block is made only while ``/dev/shm`` keeps :data:`SHM_RESERVE_BYTES` free beyond it (the
+DDS shared-memory transport lives there too; a tmpfs without room for a page written into
+a block kills the writer with SIGBUS rather than raising). Otherwise, and where shared
+memory cannot be made at all, the frames go through the pipe as before: slower, same
+numbers.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass, replace
+from multiprocessing import shared_memory
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SHM_RESERVE_BYTES", "FrameBlocks", "SharedFrameJob", "SharedFrames", "release",
+           "share_frames"]
+
+# Room left free in /dev/shm beyond a block (bytes): the DDS transport's segments (16 MiB
+# each, config/fastdds_profile.xml) and other users' blocks.
+SHM_RESERVE_BYTES = 256 * 2 ** 20
+_SHM_DIR = "/dev/shm"
+
+
+@dataclass(frozen=True)
+class SharedFrames:
+    """Where a job's two frames lie: the block ``name`` and each frame's shape and dtype
+    (intra first, then extra, back to back from offset 0)."""
+
+    name: str
+    shapes: tuple[tuple[int, ...], tuple[int, ...]]
+    dtypes: tuple[str, str]
+
+    def load(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the two frames (the block is closed before returning).
+
+        Raises:
+            OSError: the block is gone (``FileNotFoundError``) or cannot be mapped.
+        """
+        shm = shared_memory.SharedMemory(name=self.name)
+        try:
+            out, offset = [], 0
+            for shape, dtype in zip(self.shapes, self.dtypes, strict=True):
+                view = np.ndarray(shape, np.dtype(dtype), buffer=shm.buf, offset=offset)
+                out.append(view.copy())
+                offset += view.nbytes
+                del view  # no export of shm.buf may outlive close()
+            return out[0], out[1]
+        finally:
+            shm.close()
+
+
+@dataclass(frozen=True)
+class SharedFrameJob:
+    """A frames job whose frames travel in shared memory: ``job`` with empty frames, and
+    where the real ones are (what crosses the process boundary is a few hundred bytes)."""
+
+    job: Any
+    frames: SharedFrames
+
+    @property
+    def corner(self) -> str:
+        return self.job.corner
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.job.stamp_ns
+
+    def load(self) -> Any:
+        """The job with its frames (copied out of the block)."""
+        intra, extra = self.frames.load()
+        return replace(self.job, intra=intra, extra=extra)
+
+
+def _room_for(nbytes: int) -> bool:
+    """Whether /dev/shm keeps SHM_RESERVE_BYTES free after a block of ``nbytes``; True where
+    there is no /dev/shm to ask (shared memory elsewhere is not a size-limited tmpfs)."""
+    try:
+        st = os.statvfs(_SHM_DIR)
+    except OSError:
+        return True
+    return st.f_bavail * st.f_frsize >= nbytes + SHM_RESERVE_BYTES
+
+
+class FrameBlocks:
+    """The shared-memory blocks of a pool's frames jobs, kept from job to job.
+
+    A block made afresh for every job costs the node its page faults (~8k for a corner's
+    32 MB, tens of ms on the first touch of tmpfs pages); a block given back when its job is
+    done serves a later one of the same size or smaller. At most ``keep`` idle blocks are
+    kept (a pool keeps one per served corner: its jobs run one after the other); the others
+    are released. :meth:`close` releases them all.
+    """
+
+    def __init__(self, keep: int) -> None:
+        self._keep = max(0, int(keep))
+        self._idle: list[shared_memory.SharedMemory] = []
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def share(self, job: Any) -> tuple[SharedFrameJob, shared_memory.SharedMemory] | None:
+        """Copy ``job``'s two frames (``intra``, ``extra``) into a block.
+
+        Returns the light job to submit and the block, to be handed to :meth:`give_back`
+        once the job is done; or None when there is no room for a new block or shared memory
+        cannot be made (the caller then sends ``job`` itself).
+        """
+        frames = [np.ascontiguousarray(job.intra), np.ascontiguousarray(job.extra)]
+        shm = self._block(sum(f.nbytes for f in frames))
+        if shm is None:
+            return None
+        offset = 0
+        for f in frames:
+            np.ndarray(f.shape, f.dtype, buffer=shm.buf, offset=offset)[...] = f
+            offset += f.nbytes
+        where = SharedFrames(shm.name, (frames[0].shape, frames[1].shape),
+                             (frames[0].dtype.str, frames[1].dtype.str))
+        empty = np.zeros((0, 0))
+        return SharedFrameJob(replace(job, intra=empty, extra=empty), where), shm
+
+    def _block(self, nbytes: int) -> shared_memory.SharedMemory | None:
+        """The smallest idle block that holds ``nbytes``, else a new one (None: no room)."""
+        with self._lock:
+            fits = [b for b in self._idle if b.size >= nbytes]
+            if fits:
+                best = min(fits, key=lambda b: b.size)
+                self._idle.remove(best)
+                return best
+        if not _room_for(nbytes):
+            return None
+        try:
+            return shared_memory.SharedMemory(create=True, size=max(nbytes, 1))
+        except OSError:
+            return None
+
+    def give_back(self, shm: shared_memory.SharedMemory) -> None:
+        """A block whose job is done: kept for the next job, or released."""
+        with self._lock:
+            if not self._closed and len(self._idle) < self._keep:
+                self._idle.append(shm)
+                return
+        release(shm)
+
+    def close(self) -> None:
+        """Release the idle blocks; blocks given back later are released then."""
+        with self._lock:
+            self._closed = True
+            idle, self._idle = self._idle, []
+        for b in idle:
+            release(b)
+
+
+def share_frames(job: Any) -> tuple[SharedFrameJob, shared_memory.SharedMemory] | None:
+    """:meth:`FrameBlocks.share` with a new block, which the caller must :func:`release`."""
+    return FrameBlocks(keep=0).share(job)
+
+
+def release(shm: shared_memory.SharedMemory) -> None:
+    """Close and unlink a block made by :func:`share_frames` (already gone: nothing)."""
+    shm.close()
+    try:
+        shm.unlink()
+    except FileNotFoundError:
+        pass
