@@ -11,8 +11,9 @@ whatever the outcome (a dead worker included), and reuses it for a later job
 unlinks them if the node itself dies.
 
 A block is made only while ``/dev/shm`` keeps :data:`SHM_RESERVE_BYTES` free beyond it (the
-DDS shared-memory transport lives there too; a tmpfs without room for a page written into
-a block kills the writer with SIGBUS rather than raising). Otherwise, and where shared
+DDS shared-memory transport lives there too), and its pages are reserved when it is made: a
+tmpfs without room for a page written into a block would kill the writer with SIGBUS rather
+than raise. Otherwise, and where shared
 memory cannot be made at all, the frames go through the pipe as before: slower, same
 numbers.
 """
@@ -143,9 +144,13 @@ class FrameBlocks:
         if not _room_for(nbytes):
             return None
         try:
-            return shared_memory.SharedMemory(create=True, size=max(nbytes, 1))
+            shm = shared_memory.SharedMemory(create=True, size=max(nbytes, 1))
         except OSError:
             return None
+        if not _reserve(shm):
+            release(shm)
+            return None
+        return shm
 
     def give_back(self, shm: shared_memory.SharedMemory) -> None:
         """A block whose job is done: kept for the next job, or released."""
@@ -162,6 +167,24 @@ class FrameBlocks:
             idle, self._idle = self._idle, []
         for b in idle:
             release(b)
+
+
+def _reserve(shm: shared_memory.SharedMemory) -> bool:
+    """Give the block its pages now (``posix_fallocate`` on its /dev/shm file): a tmpfs
+    that fills up between the free-space check and the copy then says ENOSPC here (False)
+    instead of killing the node with SIGBUS on the first page written beyond it. True where
+    there is no such file to reserve on."""
+    try:
+        fd = os.open(os.path.join(_SHM_DIR, shm.name.lstrip("/")), os.O_RDWR)
+    except OSError:
+        return True
+    try:
+        os.posix_fallocate(fd, 0, shm.size)
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return True
 
 
 def share_frames(job: Any) -> tuple[SharedFrameJob, shared_memory.SharedMemory] | None:
