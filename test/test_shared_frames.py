@@ -13,7 +13,7 @@ import pytest
 from cwfs_ros.frames.selection import CornerFrameJob
 from cwfs_ros.runtime import shared_frames
 from cwfs_ros.runtime.corner_pool import CornerPool, run_frame_job
-from cwfs_ros.runtime.shared_frames import FrameBlocks, SharedFrameJob, release, share_frames
+from cwfs_ros.runtime.shared_frames import FrameBlocks, SharedFrameJob, release
 
 
 def _frames(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -41,7 +41,7 @@ def _exists(name: str) -> bool:
 def test_frames_come_back_bit_for_bit_and_the_block_is_released():
     intra, extra = _frames()
     big_endian = extra.astype(">f4")
-    light, shm = share_frames(_job(intra, big_endian))
+    light, shm = FrameBlocks(keep=0).share(_job(intra, big_endian))
     try:
         assert isinstance(light, SharedFrameJob) and light.job.intra.size == 0
         assert len(pickle.dumps(light)) < 2000  # no pixels in the message
@@ -121,7 +121,7 @@ def test_idle_blocks_are_reused_by_size_and_released_beyond_keep():
 def test_without_room_in_dev_shm_the_frames_go_through_the_pipe(monkeypatch):
     monkeypatch.setattr(shared_frames, "SHM_RESERVE_BYTES", 2 ** 62)
     intra, extra = _frames(2)
-    assert share_frames(_job(intra, extra)) is None
+    assert FrameBlocks(keep=0).share(_job(intra, extra)) is None
     pool = CornerPool(["R00"], n_workers=1)
     try:
         out = pool.submit_frames(_job(intra, extra)).result(timeout=120)
@@ -133,7 +133,7 @@ def test_without_room_in_dev_shm_the_frames_go_through_the_pipe(monkeypatch):
 
 def test_a_block_gone_before_the_worker_reads_it_is_an_invalid_outcome():
     intra, extra = _frames(3)
-    light, shm = share_frames(_job(intra, extra))
+    light, shm = FrameBlocks(keep=0).share(_job(intra, extra))
     release(shm)
     out = run_frame_job(light)
     assert not out.valid and out.reason == "internal_error"

@@ -28,8 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SHM_RESERVE_BYTES", "FrameBlocks", "SharedFrameJob", "SharedFrames", "release",
-           "share_frames"]
+__all__ = ["SHM_RESERVE_BYTES", "FrameBlocks", "SharedFrameJob", "SharedFrames", "release"]
 
 # Room left free in /dev/shm beyond a block (bytes): the DDS transport's segments (16 MiB
 # each, config/fastdds_profile.xml) and other users' blocks.
@@ -187,13 +186,8 @@ def _reserve(shm: shared_memory.SharedMemory) -> bool:
     return True
 
 
-def share_frames(job: Any) -> tuple[SharedFrameJob, shared_memory.SharedMemory] | None:
-    """:meth:`FrameBlocks.share` with a new block, which the caller must :func:`release`."""
-    return FrameBlocks(keep=0).share(job)
-
-
 def release(shm: shared_memory.SharedMemory) -> None:
-    """Close and unlink a block made by :func:`share_frames` (already gone: nothing)."""
+    """Close and unlink a block made by :class:`FrameBlocks` (already gone: nothing)."""
     shm.close()
     try:
         shm.unlink()
