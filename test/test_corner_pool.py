@@ -112,6 +112,28 @@ def test_a_late_crash_report_does_not_restart_the_new_worker():
         pool.shutdown()
 
 
+def test_a_restarted_worker_is_warmed_again_before_its_first_job():
+    """A worker that died is replaced by a bare process: without the corner's warm-up its
+    first visits build the caches (frames: trace field tiles) and miss the visit timeout.
+    The pool runs the corner's last warm-up on the new worker first, so the first job there
+    finds the pair geometry built (a cache hit) instead of building it."""
+    pool = CornerPool(["R00"], n_workers=1)
+    try:
+        f = FIELDS["R00"]
+        (warm,) = pool.warm_up({"R00": (f["intra"], f["extra"])}, EstimatorSettings())
+        assert warm.result(timeout=300)["ok"]
+        d = synthetic_donut(160, 60.0, 0.61)
+        killer = pool._submit_on("R00", os._exit, 3)[0]
+        assert pool.submit(job(d, d, "R00")).result(timeout=60).reason == "worker_crashed"
+        assert killer.exception(timeout=60) is not None
+        out = pool.submit(job(d, d, "R00")).result(timeout=300)
+        assert pool.restarts == 1 and pool.rewarms == 1
+        hits, builds, _held, _size = out.caches["pair_geometry"]
+        assert builds == 1 and hits >= 1, out.caches  # built by the warm-up, hit by the job
+    finally:
+        pool.shutdown()
+
+
 def test_pool_affinity_and_recovery_from_a_dead_worker():
     pool = CornerPool(["R00", "R04", "R40"], n_workers=2)
     try:

@@ -843,6 +843,7 @@ class WavefrontNode(ManagedNode):
         values = [("state", state), ("lifecycle", lifecycle),
                   ("corners", " ".join(self.corners)),
                   ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
+                  ("worker_rewarms", pool.rewarms),
                   ("assemble", self.assemble), ("settings", str(self.settings)),
                   *stats.items(), ("pending_images", pending_images),
                   ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),

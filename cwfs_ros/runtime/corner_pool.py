@@ -470,23 +470,50 @@ class CornerPool:
         self._closed = False
         # A frames job's frames in shared memory: one idle block kept per served corner.
         self._blocks = FrameBlocks(keep=len(self.corners))
+        # Each corner's last warm-up (warm_corner's arguments after the corner): a worker
+        # restarted after a crash is warmed again before its first job.
+        self._warm_args: dict[str, tuple] = {}
+        self._cold: set[int] = set()  # slots restarted and not yet warmed again
+        self.rewarms = 0
 
     def _slot(self, i: int) -> ProcessPoolExecutor:
         with self._lock:
             if self._closed:
                 raise RuntimeError("CornerPool is shut down")
             ex = self._slots[i]
-            if ex is None:
-                ex = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx,
-                                         initializer=_worker_init, initargs=(os.getpid(),))
-                self._slots[i] = ex
-            return ex
+            if ex is not None:
+                return ex
+            ex = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx,
+                                     initializer=_worker_init, initargs=(os.getpid(),))
+            self._slots[i] = ex
+            rewarm = [(c, self._warm_args[c]) for c, k in self.affinity.items()
+                      if k == i and c in self._warm_args] if i in self._cold else []
+            self._cold.discard(i)
+        self._rewarm(i, ex, rewarm)
+        return ex
+
+    def _rewarm(self, i: int, ex: ProcessPoolExecutor, corners: list[tuple[str, tuple]]
+                ) -> None:
+        """Queue the warm-up of ``corners`` on slot ``i``'s new worker ahead of any job: a
+        worker restarted after a crash would otherwise build its caches (and trace field
+        tiles, without the tile store the warm-up turns on) inside its first visits, miss
+        the visit timeout and skew the measured costs the corners are balanced by."""
+        for corner, args in corners:
+            try:
+                f = ex.submit(warm_corner, corner, *args)
+            except BrokenProcessPool:
+                return  # the next job restarts the slot again
+            with self._lock:
+                self._queued[i] += 1
+                self.rewarms += 1
+            f.add_done_callback(lambda _f: self._finished(i))
 
     def _restart(self, i: int, broken: ProcessPoolExecutor) -> None:
         with self._lock:
             if self._slots[i] is broken:
                 self._slots[i] = None
                 self.restarts += 1
+                self._cold.add(i)
         broken.shutdown(wait=False, cancel_futures=True)
 
     def _submit_on(self, corner: str, fn: Callable, *args, slot: int | None = None
@@ -592,8 +619,14 @@ class CornerPool:
         it is about to move); futures of :func:`warm_corner`.
 
         ``fields`` maps corner -> (field_intra_deg, field_extra_deg); ``frames`` also builds
-        the field tiles of the corner's half-chips.
+        the field tiles of the corner's half-chips. The pool keeps each corner's latest
+        warm-up and runs it again on a worker restarted after a crash, ahead of its first
+        job (:attr:`rewarms` counts them).
         """
+        with self._lock:
+            for c, (fi, fe) in fields.items():
+                if c in self.affinity:
+                    self._warm_args[c] = (fi, fe, settings, stamp_px, frames)
         return [self._submit_on(c, warm_corner, c, fi, fe, settings, stamp_px, frames,
                                 slot=slot)[0]
                 for c, (fi, fe) in fields.items() if c in self.affinity]
