@@ -494,7 +494,8 @@ class CornerPool:
 
     def _rewarm(self, i: int, ex: ProcessPoolExecutor, corners: list[tuple[str, tuple]]
                 ) -> None:
-        """Queue the warm-up of ``corners`` on slot ``i``'s new worker ahead of any job: a
+        """Queue the warm-up of ``corners`` on slot ``i``'s new worker ahead of any job (the
+        slot is made again as soon as its worker's death is seen): a
         worker restarted after a crash would otherwise build its caches (and trace field
         tiles, without the tile store the warm-up turns on) inside its first visits, miss
         the visit timeout and skew the measured costs the corners are balanced by."""
@@ -515,6 +516,11 @@ class CornerPool:
                 self.restarts += 1
                 self._cold.add(i)
         broken.shutdown(wait=False, cancel_futures=True)
+        # The new worker now, warmed while the next visit is still on its way.
+        try:
+            self._slot(i)
+        except (RuntimeError, OSError):
+            pass  # shut down meanwhile, or no process now: the next job starts one
 
     def _submit_on(self, corner: str, fn: Callable, *args, slot: int | None = None
                    ) -> tuple[Future, ProcessPoolExecutor]:
