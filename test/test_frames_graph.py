@@ -85,6 +85,7 @@ def test_frames_are_selected_paired_and_combined(ros_context, tmp_path):
         assert np.sqrt(np.mean(err ** 2)) < 50.0, err
         # The first visit after start read every tile it needed from the warm-up.
         after = _diag(wf)
+        assert after["frame_transport"] == "shared memory 1, pipe 0", after
         assert "(0 builds;" not in after["cache.pair_geometry"]  # the pairs were new fields
         for kind in ("map", "design"):
             assert " 0 builds;" in after[f"cache.{kind}"], after[f"cache.{kind}"]

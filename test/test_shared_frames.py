@@ -92,6 +92,7 @@ def test_frames_jobs_through_the_pool_read_their_frames_and_reuse_one_block(monk
             assert back == made
         assert len(made) == 2 and made[0] == made[1], "one block, reused"
         assert _exists(made[0])
+        assert (pool.frames_shared, pool.frames_piped) == (2, 0)  # /diagnostics frame_transport
     finally:
         pool.shutdown(wait=True)
     assert not _exists(made[0])  # released with the pool
@@ -127,6 +128,7 @@ def test_without_room_in_dev_shm_the_frames_go_through_the_pipe(monkeypatch):
         out = pool.submit_frames(_job(intra, extra)).result(timeout=120)
         assert out.reason == "non_finite"
         assert out.status == run_frame_job(_job(intra, extra)).status
+        assert (pool.frames_shared, pool.frames_piped) == (0, 1)
     finally:
         pool.shutdown(wait=True)
 

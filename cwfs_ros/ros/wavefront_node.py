@@ -844,6 +844,8 @@ class WavefrontNode(ManagedNode):
                   ("corners", " ".join(self.corners)),
                   ("workers", pool.n_workers), ("worker_restarts", pool.restarts),
                   ("worker_rewarms", pool.rewarms),
+                  ("frame_transport", f"shared memory {pool.frames_shared}, "
+                                      f"pipe {pool.frames_piped}"),
                   ("assemble", self.assemble), ("settings", str(self.settings)),
                   *stats.items(), ("pending_images", pending_images),
                   ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),

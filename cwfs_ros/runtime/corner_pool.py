@@ -470,6 +470,10 @@ class CornerPool:
         self._closed = False
         # A frames job's frames in shared memory: one idle block kept per served corner.
         self._blocks = FrameBlocks(keep=len(self.corners))
+        # Frames jobs sent through shared memory and through the pipe (no block could be
+        # made: /dev/shm short of room, or no shared memory): /diagnostics frame_transport.
+        self.frames_shared = 0
+        self.frames_piped = 0
         # Each corner's last warm-up (warm_corner's arguments after the corner): a worker
         # restarted after a crash is warmed again before its first job.
         self._warm_args: dict[str, tuple] = {}
@@ -579,6 +583,11 @@ class CornerPool:
         """
         nan_field = (float("nan"), float("nan"))
         shared = self._blocks.share(job)
+        with self._lock:
+            if shared is None:
+                self.frames_piped += 1
+            else:
+                self.frames_shared += 1
         try:
             fut = self._guarded(job.corner, job.stamp_ns, run_frame_job,
                                 job if shared is None else shared[0], (nan_field, nan_field),
