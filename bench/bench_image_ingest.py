@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """What wavefront_node spends on one frame before its worker starts: the image's identity
-(BLAKE2b of the message), decoding, the pixel checks, and the hand-off of a corner's two
+(SHA-256 of the message), decoding, the pixel checks, and the hand-off of a corner's two
 frames to the worker's shared-memory block (new, then reused), on one core.
 
 The frame is R00's intra frame of bench_frames_graph.py's first visit (``--frames``, as it
@@ -74,7 +74,7 @@ def main() -> None:
         blocks.give_back(shm)
 
     steps = {
-        "identity (BLAKE2b)": lambda: message_digest(msg),
+        "identity (SHA-256)": lambda: message_digest(msg),
         "decode to float64": lambda: decode_image(msg.data, height=msg.height,
                                                   width=msg.width, encoding=msg.encoding,
                                                   step=msg.step),

@@ -94,3 +94,23 @@ def test_vector_carries_uncertainty_and_pair_counts_of_valid_corners():
     assert vec.n_pairs == (1, 2, 0, 4)
     u = vec.uncertainty_nm.reshape(4, 19)
     assert np.all(u[0] == 7.0) and np.all(u[2] == 0.0) and u[3, 3] == 0.0 and u[3, 4] == 7.0
+
+
+def test_a_message_identity_sees_one_changed_byte_and_the_layout():
+    from types import SimpleNamespace
+
+    from cwfs_ros.runtime.visits import message_digest
+
+    data = bytearray(np.arange(4000 * 2000 // 4, dtype="<f4").tobytes())
+
+    def msg(d, encoding="32FC1", width=1000):  # 4-byte pixels
+        return SimpleNamespace(encoding=encoding, height=len(d) // (4 * width), width=width,
+                               step=4 * width, is_bigendian=0, data=d)
+
+    a = message_digest(msg(data))
+    assert len(a) == 16 and message_digest(msg(bytearray(data))) == a
+    changed = bytearray(data)
+    changed[len(changed) // 2 + 3] ^= 1  # one bit of one pixel in the middle of the frame
+    assert message_digest(msg(changed)) != a
+    assert message_digest(msg(data, encoding="32SC1")) != a  # the same bytes
+    assert message_digest(msg(data, width=500)) != a
