@@ -119,6 +119,25 @@ def test_idle_blocks_are_reused_by_size_and_released_beyond_keep():
     assert not _exists(d[1].name)
 
 
+def test_blocks_made_ahead_serve_the_first_jobs_and_stay_within_keep(monkeypatch):
+    small = _frames(5)
+    blocks = FrameBlocks(keep=2)
+    assert blocks.prepare(2 * small[0].nbytes + 4096, 5) == 2  # no more than keep
+    assert blocks.prepare(2 * small[0].nbytes, 1) == 0  # already holding keep idle blocks
+    first = blocks.share(_job(*small))
+    second = blocks.share(_job(*small))
+    assert first[1].size >= 2 * small[0].nbytes + 4096 and second[1].name != first[1].name
+    np.testing.assert_array_equal(second[0].load().extra, small[1])
+    with_room = FrameBlocks(keep=1)
+    monkeypatch.setattr(shared_frames, "SHM_RESERVE_BYTES", 2 ** 62)
+    assert with_room.prepare(1000, 1) == 0  # no room in /dev/shm: nothing made
+    for out in (first, second):
+        blocks.give_back(out[1])
+    names = [first[1].name, second[1].name]
+    blocks.close()
+    assert not any(_exists(n) for n in names)
+
+
 def test_without_room_in_dev_shm_the_frames_go_through_the_pipe(monkeypatch):
     monkeypatch.setattr(shared_frames, "SHM_RESERVE_BYTES", 2 ** 62)
     intra, extra = _frames(2)

@@ -642,9 +642,27 @@ class CornerPool:
             for c, (fi, fe) in fields.items():
                 if c in self.affinity:
                     self._warm_args[c] = (fi, fe, settings, stamp_px, frames)
+        if frames is not None:
+            self._prepare_blocks([c for c in fields if c in self.affinity], frames)
         return [self._submit_on(c, warm_corner, c, fi, fe, settings, stamp_px, frames,
                                 slot=slot)[0]
                 for c, (fi, fe) in fields.items() if c in self.affinity]
+
+    def _prepare_blocks(self, corners: list[str], frames: FrameFiles) -> None:
+        """Make the frames jobs' shared-memory blocks of ``corners`` now, each for two whole
+        half-chips as decoded (float64), so that the first visit does not make them; a
+        window uses part of one. Nothing where the sensor file cannot be read (the warm-up
+        reports that) or /dev/shm has no room (the first jobs then try again)."""
+        from cwfs_ros.frames.field_position import load_half_chips
+
+        try:
+            halves = load_half_chips(frames.sensor_config or None)
+        except (CwfsError, OSError):
+            return
+        sizes = [sum(int(np.prod(h.shape_px)) for h in halves[c].values()) * 8
+                 for c in corners if c in halves]
+        if sizes:
+            self._blocks.prepare(max(sizes), len(sizes))
 
     def shutdown(self, wait: bool = False) -> None:
         """Stop the workers (queued jobs are cancelled)."""

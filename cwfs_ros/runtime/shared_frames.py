@@ -20,6 +20,7 @@ numbers.
 
 from __future__ import annotations
 
+import mmap
 import os
 import threading
 from dataclasses import dataclass, replace
@@ -140,6 +141,11 @@ class FrameBlocks:
                 best = min(fits, key=lambda b: b.size)
                 self._idle.remove(best)
                 return best
+        return self._new_block(nbytes)
+
+    @staticmethod
+    def _new_block(nbytes: int) -> shared_memory.SharedMemory | None:
+        """A new block of ``nbytes`` with its pages reserved (None: no room)."""
         if not _room_for(nbytes):
             return None
         try:
@@ -150,6 +156,28 @@ class FrameBlocks:
             release(shm)
             return None
         return shm
+
+    def prepare(self, nbytes: int, count: int) -> int:
+        """Make up to ``count`` idle blocks of ``nbytes`` now (within ``keep`` and the room
+        in /dev/shm), so that the first jobs do not pay for making them (~90 ms for a corner
+        of two whole 4000 x 2000 half-chips, on the first visit after start). Returns how
+        many were made."""
+        made = 0
+        for _ in range(max(0, int(count))):
+            with self._lock:
+                if self._closed or len(self._idle) >= self._keep:
+                    break
+            shm = self._new_block(int(nbytes))
+            if shm is None:
+                break
+            # Map its pages into this process now as well (a write per page): the first copy
+            # into it would otherwise fault them in.
+            view = np.ndarray((shm.size,), np.uint8, buffer=shm.buf)
+            view[::mmap.PAGESIZE] = 0
+            del view  # no export of shm.buf may outlive close()
+            self.give_back(shm)
+            made += 1
+        return made
 
     def give_back(self, shm: shared_memory.SharedMemory) -> None:
         """A block whose job is done: kept for the next job, or released."""
