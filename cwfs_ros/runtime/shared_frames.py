@@ -110,6 +110,7 @@ class FrameBlocks:
     def __init__(self, keep: int) -> None:
         self._keep = max(0, int(keep))
         self._idle: list[shared_memory.SharedMemory] = []
+        self._lent = 0  # blocks handed out by share() and not yet given back
         self._lock = threading.Lock()
         self._closed = False
 
@@ -124,6 +125,8 @@ class FrameBlocks:
         shm = self._block(sum(f.nbytes for f in frames))
         if shm is None:
             return None
+        with self._lock:
+            self._lent += 1
         offset = 0
         for f in frames:
             np.ndarray(f.shape, f.dtype, buffer=shm.buf, offset=offset)[...] = f
@@ -158,14 +161,15 @@ class FrameBlocks:
         return shm
 
     def prepare(self, nbytes: int, count: int) -> int:
-        """Make up to ``count`` idle blocks of ``nbytes`` now (within ``keep`` and the room
-        in /dev/shm), so that the first jobs do not pay for making them (~90 ms for a corner
-        of two whole 4000 x 2000 half-chips, on the first visit after start). Returns how
-        many were made."""
+        """Make up to ``count`` idle blocks of ``nbytes`` now, so that the first jobs do
+        not pay for making them (~90 ms for a corner of two whole 4000 x 2000 half-chips, on
+        the first visit after start). The blocks already made, idle or lent to a running
+        job, count against ``keep``: a warm-up repeated while the node runs makes none.
+        Nothing beyond the room in /dev/shm. Returns how many were made."""
         made = 0
         for _ in range(max(0, int(count))):
             with self._lock:
-                if self._closed or len(self._idle) >= self._keep:
+                if self._closed or len(self._idle) + self._lent >= self._keep:
                     break
             shm = self._new_block(int(nbytes))
             if shm is None:
@@ -175,13 +179,20 @@ class FrameBlocks:
             view = np.ndarray((shm.size,), np.uint8, buffer=shm.buf)
             view[::mmap.PAGESIZE] = 0
             del view  # no export of shm.buf may outlive close()
-            self.give_back(shm)
+            with self._lock:
+                kept = not self._closed and len(self._idle) + self._lent < self._keep
+                if kept:
+                    self._idle.append(shm)
+            if not kept:
+                release(shm)
+                break
             made += 1
         return made
 
     def give_back(self, shm: shared_memory.SharedMemory) -> None:
         """A block whose job is done: kept for the next job, or released."""
         with self._lock:
+            self._lent = max(0, self._lent - 1)
             if not self._closed and len(self._idle) < self._keep:
                 self._idle.append(shm)
                 return
