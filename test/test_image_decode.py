@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cwfs_ros.errors import ImageError
-from cwfs_ros.runtime.images import ENCODINGS, ImageDecodeError, decode_image
+from cwfs_ros.runtime.images import ENCODINGS, ImageDecodeError, decode_image, decoded_dtype
 from cwfs_ros.wfs.orientation import Orientation, orient_image, pad_stamp
 
 RNG = np.random.default_rng(3)
@@ -51,8 +51,27 @@ def test_decode_every_encoding_byte_order_and_row_padding(encoding, big, row_pad
     data, step = raw(a, big, row_pad)
     out = decode_image(data, height=a.shape[0], width=a.shape[1], encoding=encoding,
                        step=step, is_bigendian=big)
-    assert out.dtype == np.float64 and out.shape == a.shape and out.flags.writeable
+    # The narrowest float type that holds every value of the encoding exactly.
+    exact32 = encoding in ("mono8", "8UC1", "8SC1", "mono16", "16UC1", "16SC1", "32FC1")
+    assert out.dtype == (np.float32 if exact32 else np.float64) == decoded_dtype(encoding)
+    assert out.dtype.isnative and out.shape == a.shape
     np.testing.assert_array_equal(out, a.astype(np.float64))
+
+
+def test_an_unpadded_native_float_frame_is_decoded_without_a_copy():
+    a = sample(np.float32, (40, 30))
+    data = bytearray(a.astype("<f4").tobytes())
+    out = decode_image(data, height=40, width=30, encoding="32FC1", step=120)
+    # A read-only view of the message's buffer: nothing downstream can write into it.
+    assert np.shares_memory(out, np.frombuffer(data, np.uint8)) and not out.flags.writeable
+    np.testing.assert_array_equal(out, a)
+    padded, step = raw(a, row_pad=4)  # padded rows, or the other byte order: a new array
+    assert decode_image(padded, height=40, width=30, encoding="32FC1", step=step).flags.writeable
+    swapped, step = raw(a, big=True)
+    out = decode_image(swapped, height=40, width=30, encoding="32FC1", step=step,
+                       is_bigendian=True)
+    assert out.flags.writeable and out.dtype.isnative
+    np.testing.assert_array_equal(out, a)
 
 
 @pytest.mark.parametrize("container", [bytes, bytearray, lambda b: array.array("B", b),

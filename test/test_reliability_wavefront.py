@@ -122,12 +122,12 @@ def test_pending_frames_are_bounded_oldest_first(graph):
     wf, _, pub, _, _ = graph(max_pending_mb=20.0, visit_timeout_s=60.0)
     frame = np.zeros((1000, 1000), np.float32)
     frame[500, 500] = 1.0
-    for k in range(8):  # 8 MB each as float64: the limit keeps 2
+    for k in range(8):  # 4 MB each, decoded as float32: the limit keeps 5
         pub["intra"].publish(image_msg(frame, T + k * SEC))
-    wait_for(lambda: wf.rejected.counts["memory_limit"] == 6, 20, "6 dropped")
-    assert wf.pairing.pending_bytes() <= 20e6 and wf.pairing.pending_count() == 2
+    wait_for(lambda: wf.rejected.counts["memory_limit"] == 3, 20, "3 dropped")
+    assert wf.pairing.pending_bytes() <= 20e6 and wf.pairing.pending_count() == 5
     kv = {x.key: x.value for x in wf.diagnostics().values}
-    assert float(kv["pending_mb"]) <= 20.0 and kv["rejected.memory_limit"] == "6"
+    assert float(kv["pending_mb"]) <= 20.0 and kv["rejected.memory_limit"] == "3"
 
 
 def test_stamp_pair_carries_uncertainty_and_pair_count(graph):

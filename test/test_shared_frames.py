@@ -98,7 +98,7 @@ def test_frames_jobs_through_the_pool_read_their_frames_and_reuse_one_block(monk
     assert not _exists(made[0])  # released with the pool
 
 
-def test_idle_blocks_are_reused_by_size_and_released_beyond_keep():
+def test_idle_blocks_are_reused_by_size_and_the_smallest_released_beyond_keep():
     blocks = FrameBlocks(keep=1)
     small, big = _frames(4), (np.zeros((400, 300)), np.zeros((400, 300)))
     a = blocks.share(_job(*small))
@@ -108,10 +108,13 @@ def test_idle_blocks_are_reused_by_size_and_released_beyond_keep():
     c = blocks.share(_job(*big))  # too large for any idle block: a new one
     assert c[1].name != b[1].name and c[1].size >= 2 * 400 * 300 * 8
     blocks.give_back(b[1])
-    blocks.give_back(c[1])  # beyond keep=1: released now
-    assert _exists(b[1].name) and not _exists(c[1].name)
-    d = blocks.share(_job(*small))
-    assert d[1].name == b[1].name
+    blocks.give_back(c[1])  # beyond keep=1: the smaller block is released, the larger kept
+    assert not _exists(b[1].name) and _exists(c[1].name)
+    e = blocks.share(_job(*big))  # frames as large again: no new block for them
+    assert e[1].name == c[1].name
+    blocks.give_back(e[1])
+    d = blocks.share(_job(*small))  # and smaller ones fit in it
+    assert d[1].name == c[1].name
     np.testing.assert_array_equal(d[0].load().intra, small[0])
     blocks.close()
     assert _exists(d[1].name)  # still lent out

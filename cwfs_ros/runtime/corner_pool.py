@@ -650,16 +650,20 @@ class CornerPool:
 
     def _prepare_blocks(self, corners: list[str], frames: FrameFiles) -> None:
         """Make the frames jobs' shared-memory blocks of ``corners`` now, each for two whole
-        half-chips as decoded (float64), so that the first visit does not make them; a
-        window uses part of one. Nothing where the sensor file cannot be read (the warm-up
-        reports that) or /dev/shm has no room (the first jobs then try again)."""
+        half-chips as decoded, so that the first visit does not make them; a window uses
+        part of one. Sized for float32, what 8- and 16-bit and 32FC1 cameras decode to
+        (:func:`.images.decoded_dtype`); a camera whose frames decode to float64 makes
+        larger blocks on its first visit, kept from then on (:meth:`FrameBlocks.give_back`).
+        Nothing where the sensor file cannot be read (the warm-up reports that) or /dev/shm
+        has no room (the first jobs then try again)."""
         from cwfs_ros.frames.field_position import load_half_chips
 
         try:
             halves = load_half_chips(frames.sensor_config or None)
         except (CwfsError, OSError):
             return
-        sizes = [sum(int(np.prod(h.shape_px)) for h in halves[c].values()) * 8
+        itemsize = np.dtype(np.float32).itemsize
+        sizes = [sum(int(np.prod(h.shape_px)) for h in halves[c].values()) * itemsize
                  for c in corners if c in halves]
         if sizes:
             self._blocks.prepare(max(sizes), len(sizes))

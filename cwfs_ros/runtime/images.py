@@ -2,8 +2,8 @@
 
 A ``sensor_msgs/Image`` is a header plus ``height``, ``width``, ``encoding``,
 ``is_bigendian``, ``step`` (bytes per row) and ``data``. :func:`decode_image` turns those
-fields into a 2-D float64 array ``[row, col]`` or raises :class:`ImageDecodeError` naming the
-problem (unsupported encoding, bad step, truncated data, ...). It does not judge the content
+fields into a 2-D float array ``[row, col]`` (:func:`decoded_dtype`) or raises
+:class:`ImageDecodeError` naming the problem (unsupported encoding, bad step, truncated data, ...). It does not judge the content
 (NaNs, flat or tiny images are the estimator's business, which raises its own
 :class:`~cwfs_ros.errors.ImageError`).
 
@@ -28,6 +28,7 @@ __all__ = [
     "adc_depth",
     "background_floor",
     "decode_image",
+    "decoded_dtype",
     "inspect_pixels",
     "full_scale",
     "full_scale_message",
@@ -57,10 +58,23 @@ class ImageDecodeError(ImageError):
         self.reason = reason
 
 
+def decoded_dtype(encoding: str) -> np.dtype:
+    """The float type :func:`decode_image` gives ``encoding``: float32 where it holds every
+    value exactly (8- and 16-bit integers, 32FC1), float64 otherwise (32SC1, 64FC1).
+
+    The narrowest exact type: a whole 4000 x 2000 half-chip is 32 MB as float32, and every
+    byte of it is hashed, checked and copied to a worker on the node's thread, eight frames
+    a visit (docs/performance.md, Whole half-chips).
+    """
+    base = np.dtype(ENCODINGS[str(encoding)])
+    exact32 = base.kind in "ui" and base.itemsize <= 2 or base == np.float32
+    return np.dtype(np.float32 if exact32 else np.float64)
+
+
 def decode_image(data: bytes | bytearray | memoryview | np.ndarray | list[int], *,
                  height: int, width: int, encoding: str, step: int,
                  is_bigendian: bool | int = False) -> np.ndarray:
-    """Decode raw ``sensor_msgs/Image`` fields into a float64 ``(height, width)`` array.
+    """Decode raw ``sensor_msgs/Image`` fields into a ``(height, width)`` float array.
 
     Args:
         data: the pixel bytes (``bytes``, ``array.array('B')``, a uint8 numpy array, ...).
@@ -70,8 +84,10 @@ def decode_image(data: bytes | bytearray | memoryview | np.ndarray | list[int], 
         is_bigendian: byte order of multi-byte pixels.
 
     Returns:
-        A new, writable float64 array ``[row, col]``; padding bytes at the end of each row are
-        dropped.
+        A float array ``[row, col]`` of :func:`decoded_dtype`, in native byte order; padding
+        bytes at the end of each row are dropped. Where the data already are that type and
+        order without padding (32FC1, 64FC1 little-endian on x86), a read-only view of
+        ``data`` (no copy); otherwise a new array.
 
     Raises:
         ImageDecodeError: naming the problem. ``len(data)`` must be exactly ``step * height``.
@@ -101,7 +117,15 @@ def decode_image(data: bytes | bytearray | memoryview | np.ndarray | list[int], 
         raise ImageDecodeError(
             "excess_data", f"{buf.size} B of data for step {st} x height {h} = {need} B")
     rows = buf.reshape(h, st)[:, :row_bytes]
-    return np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.float64)
+    shared = rows.flags.c_contiguous  # no padding: the pixels below are data's own bytes
+    pixels = np.ascontiguousarray(rows).view(dtype).reshape(h, w)
+    out = decoded_dtype(encoding)
+    if pixels.dtype != out:
+        return pixels.astype(out)
+    if shared:
+        pixels = pixels.view()
+        pixels.flags.writeable = False
+    return pixels
 
 
 def decode_checked(data: bytes | bytearray | memoryview | np.ndarray | list[int], *,
@@ -165,7 +189,7 @@ def inspect_pixels(image: np.ndarray, encoding: str, *, full_scale_ok: bool = Fa
     """Refuse pixels that a decoder alone can tell are wrong; raise :class:`ImageDecodeError`.
 
     Args:
-        image: the decoded image (float64) as the message declares it.
+        image: the decoded image (:func:`decode_image`) as the message declares it.
         encoding: its encoding (a key of :data:`ENCODINGS`).
         full_scale_ok: integer pixels at full scale are counted, not refused: a frame with
             several stars, where they make only their own star ``saturated`` (detection);
@@ -276,7 +300,7 @@ def _row_blocks(a: np.ndarray) -> np.ndarray:
 
 
 def _other_order(a: np.ndarray, base: np.dtype) -> np.ndarray:
-    """``a`` (float64 values of a ``base`` image) as its bytes read in the other byte order:
+    """``a`` (float values of a ``base`` image) as its bytes read in the other byte order:
     the values convert back to ``base`` exactly, and swapping their bytes is what a decoder
     with the other ``is_bigendian`` would read."""
     with np.errstate(all="ignore"):  # the wrong order may hold NaN, Inf, subnormals

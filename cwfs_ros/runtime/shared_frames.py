@@ -1,8 +1,8 @@
 """Hand a frames job's two frames to its worker process through shared memory (no ROS).
 
-A frames job carries two decoded half-chip frames (2000 x 1000 float64: 32 MB a corner).
-Pickled through the worker's pipe, they cost the node ~100 ms of pickling and pipe writes a
-corner, holding the GIL against the decoding of the next images, and several hundred ms on
+A frames job carries two decoded half-chip frames (64 MB for two whole 4000 x 2000
+half-chips as float32). Pickled through the worker's pipe, 32 MB of them cost the node ~100 ms
+of pickling and pipe writes, holding the GIL against the decoding of the next images, and several hundred ms on
 the first visit after start (docs/performance.md, Frames). Here the node copies them once
 into a POSIX shared-memory block and sends only its name; the worker copies them out and
 lets go of the block. The node takes the block back when the job's future is done,
@@ -190,13 +190,22 @@ class FrameBlocks:
         return made
 
     def give_back(self, shm: shared_memory.SharedMemory) -> None:
-        """A block whose job is done: kept for the next job, or released."""
+        """A block whose job is done: kept for the next job, or released.
+
+        Beyond ``keep`` idle blocks the smallest goes: a block made because none was large
+        enough (frames larger than the warm-up's, or a wider decoded type) then serves the
+        next visits instead of being made again for each of them.
+        """
         with self._lock:
             self._lent = max(0, self._lent - 1)
-            if not self._closed and len(self._idle) < self._keep:
+            if self._closed:
+                drop = [shm]
+            else:
                 self._idle.append(shm)
-                return
-        release(shm)
+                self._idle.sort(key=lambda b: b.size, reverse=True)
+                drop, self._idle = self._idle[self._keep:], self._idle[:self._keep]
+        for b in drop:
+            release(b)
 
     def close(self) -> None:
         """Release the idle blocks; blocks given back later are released then."""
