@@ -3,9 +3,9 @@
 A ``sensor_msgs/Image`` is a header plus ``height``, ``width``, ``encoding``,
 ``is_bigendian``, ``step`` (bytes per row) and ``data``. :func:`decode_image` turns those
 fields into a 2-D float array ``[row, col]`` (:func:`decoded_dtype`) or raises
-:class:`ImageDecodeError` naming the problem (unsupported encoding, bad step, truncated data, ...). It does not judge the content
-(NaNs, flat or tiny images are the estimator's business, which raises its own
-:class:`~cwfs_ros.errors.ImageError`).
+:class:`ImageDecodeError` naming the problem (unsupported encoding, bad step, truncated data,
+...). It does not judge the content (NaNs, flat or tiny images are the estimator's
+business, which raises its own :class:`~cwfs_ros.errors.ImageError`).
 
 Orienting a decoded stamp into the focal-plane frame is :mod:`cwfs_ros.wfs.orientation`.
 

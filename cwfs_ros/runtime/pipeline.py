@@ -289,12 +289,12 @@ class WavefrontPipeline:
         return None
 
     def size_problem(self, msg: Any) -> str | None:
-        """Why an image is too large to be taken, from its ``height`` and ``width`` alone, or
-        None: its pair at 8 bytes a pixel (2 x rows x cols x 8 B: float64, the widest type
-        an image decodes to) must fit within ``max_pending_mb``. One image of the pair waits for the other in that memory, and
-        the pair then goes to a worker; a larger pair could never be estimated, and its
-        decoding alone would take the process gigabytes beyond the limit (an 8192 x 8192
-        image: 537 MB as float64)."""
+        """Why an image is too large to be taken, from its ``height`` and ``width`` alone,
+        or None: its pair at 8 bytes a pixel (2 x rows x cols x 8 B: float64, the widest
+        type an image decodes to) must fit within ``max_pending_mb``. One image of the pair
+        waits for the other in that memory, and the pair then goes to a worker; a larger
+        pair could never be estimated, and its decoding alone would take the process
+        gigabytes beyond the limit (an 8192 x 8192 image: 537 MB as float64)."""
         try:
             rows, cols = int(msg.height), int(msg.width)
         except (TypeError, ValueError):

@@ -1,12 +1,12 @@
 """Hand a frames job's two frames to its worker process through shared memory (no ROS).
 
 A frames job carries two decoded half-chip frames (64 MB for two whole 4000 x 2000
-half-chips as float32). Pickled through the worker's pipe, 32 MB of them cost the node ~100 ms
-of pickling and pipe writes, holding the GIL against the decoding of the next images, and several hundred ms on
-the first visit after start (docs/performance.md, Frames). Here the node copies them once
-into a POSIX shared-memory block and sends only its name; the worker copies them out and
-lets go of the block. The node takes the block back when the job's future is done,
-whatever the outcome (a dead worker included), and reuses it for a later job
+half-chips as float32). Pickled through the worker's pipe, 32 MB of them cost the node ~100
+ms of pickling and pipe writes, holding the GIL against the decoding of the next images, and
+several hundred ms on the first visit after start (docs/performance.md, Frames). Here the
+node copies them once into a POSIX shared-memory block and sends only its name; the worker
+copies them out and lets go of the block. The node takes the block back when the job's
+future is done, whatever the outcome (a dead worker included), and reuses it for a later job
 (:class:`FrameBlocks`). Blocks are registered with multiprocessing's resource tracker, which
 unlinks them if the node itself dies.
 
