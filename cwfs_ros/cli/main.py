@@ -35,6 +35,7 @@ from cwfs_ros import __version__
 from cwfs_ros.argtypes import finite_float as _finite_float
 from cwfs_ros.argtypes import positive_int as _positive_int
 from cwfs_ros.errors import CliError, CwfsError, ToolError
+from cwfs_ros.runtime.memory import keep_freed_memory
 from cwfs_ros.runtime.threads import limit_blas_threads
 
 __all__ = ["main", "build_parser", "subcommand", "CliError"]
@@ -131,6 +132,7 @@ def _negative_values(argv: Sequence[str]) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (argparse exits are returned too)."""
     limit_blas_threads()
+    keep_freed_memory()  # large messages reuse the heap's pages (runtime.memory)
     parser = build_parser()
     argv = _negative_values(sys.argv[1:] if argv is None else argv)
     try:

@@ -42,6 +42,7 @@ from cwfs_ros.config import config_dir
 from cwfs_ros.errors import LaunchError
 from cwfs_ros.ros.dds import ensure_fastdds_profile
 from cwfs_ros.ros.params import check_declared, check_overrides, default_params_file
+from cwfs_ros.runtime.memory import keep_freed_memory
 from cwfs_ros.runtime.threads import limit_blas_threads
 
 __all__ = [
@@ -289,6 +290,7 @@ def _split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
 def run_node_main(name: str, argv: Sequence[str] | None = None) -> int:
     """``ros2 run``-style main of one node: ``NAME [--params FILE] [--ros-args ...]``."""
     limit_blas_threads()
+    keep_freed_memory()  # large messages reuse the heap's pages (runtime.memory)
     own, ros = _split_ros_args(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog=name, description=f"Run {name} (cwfs_ros).")
     ap.add_argument("--params", action="append", default=[], metavar="FILE",
@@ -387,6 +389,7 @@ def add_node_parser(subparsers) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cwfs_ros.ros.launch bringup|node ...`` (the same subcommands as cwfs-ros)."""
     limit_blas_threads()
+    keep_freed_memory()  # large messages reuse the heap's pages (runtime.memory)
     ap = argparse.ArgumentParser(prog="python -m cwfs_ros.ros.launch",
                                  description="Start cwfs_ros nodes.")
     sub = ap.add_subparsers(dest="command", required=True)

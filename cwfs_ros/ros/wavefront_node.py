@@ -83,6 +83,7 @@ from cwfs_ros.ros.convert import (
     wavefront_vector_msg,
 )
 from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool
+from cwfs_ros.runtime.memory import prefault_heap
 from cwfs_ros.runtime.pipeline import SETTINGS_PARAMS as _SETTINGS_PARAMS
 from cwfs_ros.runtime.pipeline import (
     WavefrontPipeline,
@@ -139,6 +140,9 @@ class WavefrontNode(ManagedNode):
         # Counts warm-ups over the node's life (not reset on configure), so that a late
         # answer of a pool released by cleanup is never taken for the new pool's.
         self._warm_generation = 0
+        # Heap grown with its pages mapped at the first frames warm-up (runtime.memory): 0
+        # where the process returns freed memory (glibc's defaults) or serves stamps.
+        self._heap_prefault_mb = 0.0
         self._declare_parameters()
         self._cb_images = MutuallyExclusiveCallbackGroup()
         self._cb_timers = MutuallyExclusiveCallbackGroup()
@@ -456,6 +460,12 @@ class WavefrontNode(ManagedNode):
             gen = self._warm_generation
             self._warm = {}
         t0 = time.monotonic()
+        if self.pipeline.frame_warm() is not None and not self._heap_prefault_mb:
+            # Frames of 32 MB: their first visit reuses mapped pages (runtime.memory), where
+            # the process keeps its freed heap (the cwfs-ros entry points set that up).
+            mb = float(self._param("max_pending_mb"))
+            if prefault_heap(int(mb * 1e6)):
+                self._heap_prefault_mb = mb
         for c in self.corners:
             self._warm_corner(c, gen, t0, attempt=1)
 
@@ -846,6 +856,7 @@ class WavefrontNode(ManagedNode):
                   ("worker_rewarms", pool.rewarms),
                   ("frame_transport", f"shared memory {pool.frames_shared}, "
                                       f"pipe {pool.frames_piped}"),
+                  ("heap_prefault_mb", f"{self._heap_prefault_mb:g}"),
                   ("assemble", self.assemble), ("settings", str(self.settings)),
                   *stats.items(), ("pending_images", pending_images),
                   ("pending_visits", pending_visits), ("pending_mb", f"{pending_mb:.1f}"),
