@@ -60,9 +60,8 @@ def test_a_launched_frames_node_keeps_and_prefaults_its_heap(ros_context, tmp_pa
     """The entry point keeps the heap; the frames warm-up maps max_pending_mb of it
     (/diagnostics ``heap_prefault_mb``). This test process keeps glibc's defaults."""
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-
     from conftest import REPO_ROOT, wait_for
+    from diagnostic_msgs.msg import DiagnosticArray
 
     seen: list[dict[str, str]] = []
     node = rclpy.create_node("heap_probe", context=ros_context)
