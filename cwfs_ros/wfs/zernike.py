@@ -106,11 +106,22 @@ class ZernikeBasis:
     eps: float
     monomials: np.ndarray = field(repr=False)
     coeffs_xy: np.ndarray = field(repr=False)
-    z: np.ndarray = field(repr=False)
+    # A subset's Z values: (its parent's z, the subset's point indices), taken on first use.
+    _z_of: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
+                                                        compare=False)
 
     @property
     def npoints(self) -> int:
         return self.monomials.shape[1]
+
+    @cached_property
+    def z(self) -> np.ndarray:
+        # Lazy for a subset: the least-squares estimator of a new star pair reads only its
+        # monomials and derivatives, and z's columns would be gathered for nothing.
+        if self._z_of is not None:
+            parent_z, index = self._z_of
+            return np.take(parent_z, index, axis=1)
+        return np.ascontiguousarray(self.coeffs_xy @ self.monomials)
 
     @cached_property
     def _ops(self) -> np.ndarray:
@@ -146,12 +157,13 @@ class ZernikeBasis:
         """The basis at ``points[index]``, sharing this basis' polynomial coefficients.
 
         Derivative arrays already built here are indexed, not rebuilt: a basis built once
-        on a fixed pupil grid then serves every field's computation region on it.
+        on a fixed pupil grid then serves every field's computation region on it. ``z`` is
+        indexed on first use.
         """
         # np.take along the point axis: the same values as a[:, index], ~3x faster (numpy's
         # mixed slice/array indexing is slow for (k, n) arrays).
         sub = ZernikeBasis(self.jmax, self.eps, np.take(self.monomials, index, axis=1),
-                           self.coeffs_xy, np.take(self.z, index, axis=1))
+                           self.coeffs_xy, _z_of=(self.z, index))
         for name in ("dx", "dy", "dxx", "dxy", "dyy"):
             if name in self.__dict__:  # a cached_property that has been evaluated
                 sub.__dict__[name] = np.take(self.__dict__[name], index, axis=1)
@@ -196,8 +208,9 @@ def zernike_basis(x: np.ndarray, y: np.ndarray, jmax: int = 22, eps: float = 0.6
     yp = np.vstack([np.ones_like(y)] + [y**p for p in range(1, maxp + 1)])
     mono = np.ascontiguousarray(xp[exps[:, 0]] * yp[exps[:, 1]], dtype=dtype)
     coeffs = np.asarray(xy_coefficients(jmax, float(eps)), dtype=dtype)
-    z = np.ascontiguousarray(coeffs @ mono)
-    return ZernikeBasis(jmax, float(eps), mono, coeffs, z)
+    basis = ZernikeBasis(jmax, float(eps), mono, coeffs)
+    _ = basis.z  # evaluated now: a full basis' callers read it
+    return basis
 
 
 def annulus_quadrature(eps: float, n_radial: int = 24,
