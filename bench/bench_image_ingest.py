@@ -1,7 +1,11 @@
 #!/usr/bin/env python3
-"""What wavefront_node spends on one frame before its worker starts: the image's identity
-(SHA-256 of the message), decoding, the pixel checks, and the hand-off of a corner's two
-frames to the worker's shared-memory block (new, then reused), on one core.
+"""What wavefront_node spends on one frame before its worker starts: rclpy's take of the
+message (its deserialisation, in a thread as the executor's), the image's identity (SHA-256
+of the message), decoding, the pixel checks, and the hand-off of a corner's two frames to the
+worker's shared-memory block (new, then reused), on one core.
+
+The process keeps its freed heap as the cwfs-ros entry points make the node's do
+(cwfs_ros.runtime.memory); ``--glibc-defaults`` leaves glibc's allocator as it is, to compare.
 
 The frame is R00's intra frame of bench_frames_graph.py's first visit (``--frames``, as it
 sends them: 32FC1) when rendered, else ``--rows`` x ``--cols`` of sky noise (the pixel checks
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import array
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -24,6 +29,7 @@ import numpy as np
 
 from cwfs_ros.frames.selection import CornerFrameJob
 from cwfs_ros.runtime.images import decode_image, inspect_pixels
+from cwfs_ros.runtime.memory import keep_freed_memory
 from cwfs_ros.runtime.shared_frames import FrameBlocks
 from cwfs_ros.runtime.visits import image_record_from_msg, message_digest
 
@@ -57,7 +63,10 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--frames", type=Path, default=REPO / "out" / "bench_frames_graph" /
                     "visit00.npz")
+    ap.add_argument("--glibc-defaults", action="store_true",
+                    help="do not keep freed heap memory (runtime.memory)")
     a = ap.parse_args()
+    kept = False if a.glibc_defaults else keep_freed_memory()
     if a.frames.exists():
         with np.load(a.frames) as z:
             img, what = z["R00_intra"].astype(np.float32), f"R00 intra of {a.frames.name}"
@@ -73,22 +82,47 @@ def main() -> None:
         light, shm = blocks.share(CornerFrameJob("R00", 1, image, image))
         blocks.give_back(shm)
 
+    serialized, pool = _serialized(img), ThreadPoolExecutor(1)
+
+    def take() -> None:
+        pool.submit(_deserialize, serialized).result()
+
     steps = {
+        "rclpy take (deserialisation)": take,
         "identity (SHA-256)": lambda: message_digest(msg),
-        "decode to float64": lambda: decode_image(msg.data, height=msg.height,
-                                                  width=msg.width, encoding=msg.encoding,
-                                                  step=msg.step),
+        "decode (32FC1: a view)": lambda: decode_image(msg.data, height=msg.height,
+                                                       width=msg.width, encoding=msg.encoding,
+                                                       step=msg.step),
         "pixel checks": lambda: inspect_pixels(image, "32FC1", full_scale_ok=True),
         "whole record (the three)": lambda: image_record_from_msg(msg, "R00", "intra", 0.0,
                                                                    full_scale_ok=True),
         "hand-off of a corner's 2 frames": hand_off,
     }
     print(f"{img.shape[0]}x{img.shape[1]} 32FC1 frame ({what}), median of {a.reps} "
-          "(first call):")
+          f"(first call); freed heap {'kept' if kept else 'returned (glibc defaults)'}:")
     for name, fn in steps.items():
         first, med = _times_ms(fn, a.reps)
         print(f"  {name:34s} {med:6.1f} ms  ({first:.1f})")
     blocks.close()
+    pool.shutdown()
+
+
+def _serialized(img: np.ndarray) -> bytes:
+    """The frame as a serialised sensor_msgs/Image, as DDS hands it to rclpy."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    m = Image()
+    m.height, m.width, m.encoding, m.step = img.shape[0], img.shape[1], "32FC1", 4 * img.shape[1]
+    m.data = img.astype("<f4").tobytes()
+    return serialize_message(m)
+
+
+def _deserialize(data: bytes) -> None:
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image
+
+    deserialize_message(data, Image)
 
 
 if __name__ == "__main__":
