@@ -91,6 +91,10 @@ def _derivative_operators(order: int) -> np.ndarray:
     return ops
 
 
+# The cached arrays of a ZernikeBasis that hold one value (or row) per point.
+_POINT_ARRAYS = ("z", "dx", "dy", "dxx", "dxy", "dyy")
+
+
 @dataclass(frozen=True)
 class ZernikeBasis:
     """Annular Zernikes Z_1..Z_jmax at fixed pupil points, with fast derivative fields.
@@ -106,28 +110,37 @@ class ZernikeBasis:
     eps: float
     monomials: np.ndarray = field(repr=False)
     coeffs_xy: np.ndarray = field(repr=False)
-    # A subset's Z values: (its parent's z, the subset's point indices), taken on first use.
-    _z_of: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
-                                                        compare=False)
+    # A subset's source: (its parent's arrays at the points that had been evaluated, by
+    # name; the subset's point indices). Each is taken from there on first use: the
+    # least-squares estimator of a new star pair reads only the monomials, dx and dy, and
+    # the other arrays' points would be gathered for nothing.
+    _parent: tuple[dict[str, np.ndarray], np.ndarray] | None = field(default=None, repr=False,
+                                                                     compare=False)
 
     @property
     def npoints(self) -> int:
         return self.monomials.shape[1]
 
+    def _from_parent(self, name: str, axis: int = 1) -> np.ndarray | None:
+        if self._parent is not None:
+            arrays, index = self._parent
+            if name in arrays:
+                return np.take(arrays[name], index, axis=axis)
+        return None
+
     @cached_property
     def z(self) -> np.ndarray:
-        # Lazy for a subset: the least-squares estimator of a new star pair reads only its
-        # monomials and derivatives, and z's columns would be gathered for nothing.
-        if self._z_of is not None:
-            parent_z, index = self._z_of
-            return np.take(parent_z, index, axis=1)
-        return np.ascontiguousarray(self.coeffs_xy @ self.monomials)
+        got = self._from_parent("z")
+        return got if got is not None else np.ascontiguousarray(self.coeffs_xy @ self.monomials)
 
     @cached_property
     def _ops(self) -> np.ndarray:
         return _derivative_operators(_order(self.jmax))
 
-    def _term_derivative(self, k: int) -> np.ndarray:
+    def _term_derivative(self, k: int, name: str) -> np.ndarray:
+        got = self._from_parent(name)
+        if got is not None:
+            return got
         # In the basis dtype, as z: the small factor is cast, never the big monomial array
         # (a float64 product would upcast it and double the arrays every solver set-up reads).
         return (self.coeffs_xy @ self._ops[k]).astype(self.monomials.dtype) @ self.monomials
@@ -135,39 +148,36 @@ class ZernikeBasis:
     # Per-term derivative arrays (jmax, npoints), built on first use (solver set-up, tests).
     @cached_property
     def dx(self) -> np.ndarray:
-        return self._term_derivative(0)
+        return self._term_derivative(0, "dx")
 
     @cached_property
     def dy(self) -> np.ndarray:
-        return self._term_derivative(1)
+        return self._term_derivative(1, "dy")
 
     @cached_property
     def dxx(self) -> np.ndarray:
-        return self._term_derivative(2)
+        return self._term_derivative(2, "dxx")
 
     @cached_property
     def dxy(self) -> np.ndarray:
-        return self._term_derivative(3)
+        return self._term_derivative(3, "dxy")
 
     @cached_property
     def dyy(self) -> np.ndarray:
-        return self._term_derivative(4)
+        return self._term_derivative(4, "dyy")
 
     def subset(self, index: np.ndarray) -> ZernikeBasis:
         """The basis at ``points[index]``, sharing this basis' polynomial coefficients.
 
-        Derivative arrays already built here are indexed, not rebuilt: a basis built once
-        on a fixed pupil grid then serves every field's computation region on it. ``z`` is
-        indexed on first use.
+        The arrays at the points already built here (``z``, the derivatives) are indexed on
+        first use, not rebuilt: a basis built once on a fixed pupil grid then serves every
+        field's computation region on it.
         """
+        built = {k: v for k, v in self.__dict__.items() if k in _POINT_ARRAYS}
         # np.take along the point axis: the same values as a[:, index], ~3x faster (numpy's
         # mixed slice/array indexing is slow for (k, n) arrays).
-        sub = ZernikeBasis(self.jmax, self.eps, np.take(self.monomials, index, axis=1),
-                           self.coeffs_xy, _z_of=(self.z, index))
-        for name in ("dx", "dy", "dxx", "dxy", "dyy"):
-            if name in self.__dict__:  # a cached_property that has been evaluated
-                sub.__dict__[name] = np.take(self.__dict__[name], index, axis=1)
-        return sub
+        return ZernikeBasis(self.jmax, self.eps, np.take(self.monomials, index, axis=1),
+                            self.coeffs_xy, _parent=(built, index))
 
     def wavefront(self, coeffs: np.ndarray) -> np.ndarray:
         """W at the points for Noll coefficients ``coeffs`` (Z1.., at most jmax long)."""
