@@ -2,12 +2,15 @@
 """Time per corner on fixed rendered frames, for A/B comparisons on a noisy machine.
 
 Renders ``--trials`` + ``--warm-trials`` corner frame pairs once (as bench_frames.py does,
-same seeds) into ``--cache`` (npz).  The ``--warm-trials`` frames (trials after the timed
-ones) are processed first, to build the field tiles a running node has after a few visits;
-then ``--reps`` passes over the ``--trials`` frames are timed, with the pair-geometry cache
-cleared before each corner.  Their stars are not those of the warm-up, so every pair is at
-a new star field, as every visit on the sky.  Prints the median for the 4-pair corners and
-a machine reference (bench_frames.machine_reference_ms).
+same seeds) into ``--cache`` (npz).  The field tiles of R00's half-chips are made first as
+wavefront_node's frames warm-up makes them (every star field of the half-chips, read from
+``--tile-store`` after the first run), then the ``--warm-trials`` frames (trials after the
+timed ones) are processed; then ``--reps`` passes over the ``--trials`` frames are timed,
+with the pair-geometry cache cleared before each corner.  Their stars are not those of the
+warm-up, so every pair is at a new star field, as every visit on the sky.  Prints the median
+for the 4-pair corners and a machine reference (bench_frames.machine_reference_ms).
+``--no-tile-warm-up`` leaves the tiles to the warm-up trials alone: a tile then serves a
+field only after its first few fields, which keep the direct trace (~5 ms a side).
 
 Two checkouts compared on the same frames, alternately (the machine's speed drifts):
 
@@ -56,6 +59,21 @@ def frames(cache: Path, trials: range, seed: int) -> list[dict[str, np.ndarray]]
     return out
 
 
+def warm_half_chip_tiles(settings: EstimatorSettings, store: Path) -> int:
+    """The field tiles of every star field of R00's half-chips, as wavefront_node's frames
+    warm-up makes them in its worker (runtime.corner_pool); returns the tiles made."""
+    from cwfs_ros.frames.field_position import corner_star_fields
+    from cwfs_ros.wfs.estimator import load_algorithm, warm_star_fields
+    from cwfs_ros.wfs.instrument import load_instrument
+    from cwfs_ros.wfs.mapping import use_field_tile_store
+
+    use_field_tile_store(store)
+    inst = load_instrument(settings.instrument)
+    side_fields, mids = corner_star_fields(load_half_chips()["R00"], inst, settings.band)
+    return warm_star_fields(inst, settings.band, inst.wavelength_nm(settings.band, None),
+                            load_algorithm(settings.solver), side_fields, mids)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=Path("out/bench_frames_cache"))
@@ -64,6 +82,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--seed", type=int, default=20261126)
     ap.add_argument("--tag", default="")
+    ap.add_argument("--tile-store", type=Path, default=Path("out/bench_frames_tiles"))
+    ap.add_argument("--no-tile-warm-up", action="store_true")
     ap.add_argument("--estimator-seeing", type=float, default=0.0,
                     help="seeing (arcsec FWHM) the estimator is told: > 0 adds the blur "
                          "reference of each new pair geometry (cwfs_ros.wfs.blur)")
@@ -75,7 +95,9 @@ def main() -> None:
     kw = dict(corner="R00", settings=settings, config=cfg)
     rows = []
     with threadpool_limits(1):
-        for d in warm_up:  # field tiles built: the steady state of a running node
+        if not a.no_tile_warm_up:
+            warm_half_chip_tiles(settings, a.tile_store)
+        for d in warm_up:  # caches used: the steady state of a running node
             estimate_corner_frames(d["intra"], d["extra"], **kw)
         for _ in range(a.reps):
             for d in data:
