@@ -140,8 +140,8 @@ class WavefrontNode(ManagedNode):
         # Counts warm-ups over the node's life (not reset on configure), so that a late
         # answer of a pool released by cleanup is never taken for the new pool's.
         self._warm_generation = 0
-        # Heap grown with its pages mapped at the first frames warm-up (runtime.memory): 0
-        # where the process returns freed memory (glibc's defaults) or serves stamps.
+        # Heap mapped at the first frames warm-up (_prefault_heap, runtime.memory): 0 where
+        # the process returns freed memory (glibc's defaults) or serves stamps.
         self._heap_prefault_mb = 0.0
         self._declare_parameters()
         self._cb_images = MutuallyExclusiveCallbackGroup()
@@ -460,14 +460,29 @@ class WavefrontNode(ManagedNode):
             gen = self._warm_generation
             self._warm = {}
         t0 = time.monotonic()
-        if self.pipeline.frame_warm() is not None and not self._heap_prefault_mb:
-            # Frames of 32 MB: their first visit reuses mapped pages (runtime.memory), where
-            # the process keeps its freed heap (the cwfs-ros entry points set that up).
-            mb = float(self._param("max_pending_mb"))
-            if prefault_heap(int(mb * 1e6)):
-                self._heap_prefault_mb = mb
+        frames = self.pipeline.frame_warm()
+        if frames is not None and not self._heap_prefault_mb:
+            self._prefault_heap(frames.sensor_config)
         for c in self.corners:
             self._warm_corner(c, gen, t0, attempt=1)
+
+    def _prefault_heap(self, sensor_config: str) -> None:
+        """Map heap pages for one visit's frames now (runtime.memory), where the process
+        keeps its freed heap (the cwfs-ros entry points set that up): the served half-chips
+        as float32 (256 MB for four whole LSST corners), at most ``max_pending_mb``. The
+        first visit's 32 MB takes then reuse them instead of faulting pages in."""
+        from cwfs_ros.errors import CwfsError
+        from cwfs_ros.frames.field_position import load_half_chips
+
+        try:
+            halves = load_half_chips(sensor_config or None)
+        except (CwfsError, OSError):
+            return  # the workers' warm-up reports the sensor file
+        pixels = sum(h.shape_px[0] * h.shape_px[1] for c in self.corners if c in halves
+                     for h in halves[c].values())
+        mb = min(float(self._param("max_pending_mb")), pixels * 4 / 1e6)
+        if prefault_heap(int(mb * 1e6)):
+            self._heap_prefault_mb = mb
 
     def _warm_corner(self, corner: str, gen: int, t0: float, attempt: int) -> None:
         (f,) = self.pool.warm_up({corner: (self.fields[corner]["intra"],

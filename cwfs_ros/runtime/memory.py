@@ -12,8 +12,9 @@ time (docs/performance.md, Whole half-chips).
 do for a control loop (``mallopt``: no ``mmap`` for large blocks, no trimming, one arena so
 that the executor's threads reuse one another's blocks). The process then stays at its
 high-water mark, bounded by what it holds at once (``max_pending_mb`` of waiting images,
-the messages being taken). :func:`prefault_heap` reaches that mark at start-up, so that the
-first visit after start finds its pages mapped too.
+the messages being taken). :func:`prefault_heap` maps pages ahead (wavefront_node: one
+visit's frames, at its frames warm-up), so that the first visit after start finds its pages
+mapped too.
 
 Only where the C library is glibc; a user's own ``MALLOC_*`` settings (:data:`HEAP_VARIABLES`)
 win, as for BLAS threads (:mod:`.threads`). No ROS here.
