@@ -82,7 +82,13 @@ from cwfs_ros.ros.convert import (
     corner_wavefront_msg,
     wavefront_vector_msg,
 )
-from cwfs_ros.runtime.corner_pool import CornerJob, CornerOutcome, CornerPool
+from cwfs_ros.runtime.corner_pool import (
+    CornerJob,
+    CornerOutcome,
+    CornerPool,
+    FrameFiles,
+    frames_nbytes,
+)
 from cwfs_ros.runtime.memory import prefault_heap
 from cwfs_ros.runtime.pipeline import SETTINGS_PARAMS as _SETTINGS_PARAMS
 from cwfs_ros.runtime.pipeline import (
@@ -462,25 +468,17 @@ class WavefrontNode(ManagedNode):
         t0 = time.monotonic()
         frames = self.pipeline.frame_warm()
         if frames is not None and not self._heap_prefault_mb:
-            self._prefault_heap(frames.sensor_config)
+            self._prefault_heap(frames)
         for c in self.corners:
             self._warm_corner(c, gen, t0, attempt=1)
 
-    def _prefault_heap(self, sensor_config: str) -> None:
+    def _prefault_heap(self, frames: FrameFiles) -> None:
         """Map heap pages for one visit's frames now (runtime.memory), where the process
         keeps its freed heap (the cwfs-ros entry points set that up): the served half-chips
         as float32 (256 MB for four whole LSST corners), at most ``max_pending_mb``. The
         first visit's 32 MB takes then reuse them instead of faulting pages in."""
-        from cwfs_ros.errors import CwfsError
-        from cwfs_ros.frames.field_position import load_half_chips
-
-        try:
-            halves = load_half_chips(sensor_config or None)
-        except (CwfsError, OSError):
-            return  # the workers' warm-up reports the sensor file
-        pixels = sum(h.shape_px[0] * h.shape_px[1] for c in self.corners if c in halves
-                     for h in halves[c].values())
-        mb = min(float(self._param("max_pending_mb")), pixels * 4 / 1e6)
+        visit_bytes = sum(frames_nbytes(frames, self.corners).values())
+        mb = min(float(self._param("max_pending_mb")), visit_bytes / 1e6)
         if prefault_heap(int(mb * 1e6)):
             self._heap_prefault_mb = mb
 

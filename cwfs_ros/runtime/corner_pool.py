@@ -43,6 +43,7 @@ __all__ = [
     "CornerOutcome",
     "CornerPool",
     "FrameFiles",
+    "frames_nbytes",
     "invalid_outcome",
     "frame_outcome",
     "run_corner_job",
@@ -242,6 +243,22 @@ def frame_outcome(res: Any) -> CornerOutcome:
                          bool(res.converged), int(res.iterations), ms, res.solver,
                          res.worker_pid,
                          uncertainty_nm=unc, n_pairs=int(res.n_pairs))
+
+
+def frames_nbytes(frames: FrameFiles, corners: Sequence[str]) -> dict[str, int]:
+    """Bytes of each of ``corners``' two whole half-chips (from the sensor file of
+    ``frames``) as float32, what 8- and 16-bit and 32FC1 cameras decode to
+    (:func:`.images.decoded_dtype`); ``{}`` where the sensor file cannot be read (the
+    workers' warm-up reports that)."""
+    from cwfs_ros.frames.field_position import load_half_chips
+
+    try:
+        halves = load_half_chips(frames.sensor_config or None)
+    except (CwfsError, OSError):
+        return {}
+    itemsize = np.dtype(np.float32).itemsize
+    return {c: sum(int(np.prod(h.shape_px)) for h in halves[c].values()) * itemsize
+            for c in corners if c in halves}
 
 
 def run_frame_job(job: Any) -> CornerOutcome:
@@ -656,15 +673,7 @@ class CornerPool:
         larger blocks on its first visit, kept from then on (:meth:`FrameBlocks.give_back`).
         Nothing where the sensor file cannot be read (the warm-up reports that) or /dev/shm
         has no room (the first jobs then try again)."""
-        from cwfs_ros.frames.field_position import load_half_chips
-
-        try:
-            halves = load_half_chips(frames.sensor_config or None)
-        except (CwfsError, OSError):
-            return
-        itemsize = np.dtype(np.float32).itemsize
-        sizes = [sum(int(np.prod(h.shape_px)) for h in halves[c].values()) * itemsize
-                 for c in corners if c in halves]
+        sizes = list(frames_nbytes(frames, corners).values())
         if sizes:
             self._blocks.prepare(max(sizes), len(sizes))
 
