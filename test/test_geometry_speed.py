@@ -171,7 +171,9 @@ def test_distance_transform_dilation_equals_binary_dilation() -> None:
     rng = np.random.default_rng(8)
     yy, xx = np.mgrid[:120, :120]
     masks = [rng.random((120, 120)) < 0.002, rng.random((90, 90)) < 0.3,
-             np.hypot(xx - 57.3, yy - 61.0) < 37.0, np.zeros((40, 40), bool)]
+             np.hypot(xx - 57.3, yy - 61.0) < 37.0, np.zeros((40, 40), bool),
+             # a small patch near one edge: the dilation works on its box alone
+             np.hypot(xx - 104.2, yy - 9.6) < 5.0]
     for m in masks:
         for r in (1, 2, 3, 4, 5, 6, 7, 12):  # both methods (rectangles up to 6)
             yd, xd = np.mgrid[-r:r + 1, -r:r + 1]

@@ -591,13 +591,15 @@ class _DiskSums:
     within the radius.
 
     Attributes:
-        cs, csx: (rows, cols + 1) running sums of the light and of light times column.
+        sums: (rows, cols + 1) complex running sums: the light in the real part, light times
+            column in the imaginary part.  One complex ``cumsum`` costs what one real one
+            does (a running sum is bound by the latency of each add, and the two parts'
+            adds are independent), and gives both parts to the bit.
         gy: the rows' frame coordinates; ``x0`` the stamp's first frame column, ``w`` its
             width.
     """
 
-    cs: np.ndarray
-    csx: np.ndarray
+    sums: np.ndarray
     gy: np.ndarray
     x0: int
     w: int
@@ -605,11 +607,17 @@ class _DiskSums:
     @classmethod
     def of(cls, img: np.ndarray, x0: int, y0: int) -> _DiskSums:
         h_, w_ = img.shape
-        cs = np.zeros((h_, w_ + 1))
-        csx = np.zeros((h_, w_ + 1))
-        np.cumsum(img, axis=1, out=cs[:, 1:])
-        np.cumsum(img * (_offsets(w_) + x0), axis=1, out=csx[:, 1:])
-        return cls(cs, csx, _offsets(h_) + y0, x0, w_)
+        moments = np.empty((h_, w_), complex)
+        moments.real = img
+        np.multiply(img, _offsets(w_) + x0, out=moments.imag)
+        sums = np.zeros((h_, w_ + 1), complex)
+        np.cumsum(moments, axis=1, out=sums[:, 1:])
+        return cls(sums, _offsets(h_) + y0, x0, w_)
+
+    @property
+    def cs(self) -> np.ndarray:
+        """(rows, cols + 1) running sums of the light."""
+        return self.sums.real
 
     def disk(self, xc: float, yc: float, radius2: float
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
@@ -633,10 +641,13 @@ class _DiskSums:
         (left where it is if the disk holds no light)."""
         rows = np.arange(self.gy.size)
         for _ in range(passes):
-            lo, hi, s0, tot, _n = self.disk(cx, cy, radius2)
+            lo, hi = _spans(self.gy, cx, cy, radius2, self.x0, self.w)
+            both = self.sums[rows, hi] - self.sums[rows, lo]
+            s0 = both.real
+            tot = float(s0.sum())
             if not tot > 0:
                 break
-            cx = float((self.csx[rows, hi] - self.csx[rows, lo]).sum() / tot)
+            cx = float(both.imag.sum() / tot)
             cy = float((s0 * self.gy).sum() / tot)
         return cx, cy
 

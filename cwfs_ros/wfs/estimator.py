@@ -338,8 +338,23 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     float comparison is exact), whose cost does not grow with the radius.  Both give the
     same set (test_geometry_speed).
     """
-    if not mask.any():
-        return np.zeros_like(mask, dtype=bool)
+    out = np.zeros(mask.shape, bool)
+    rows = np.flatnonzero(mask.any(axis=1))
+    if not rows.size:
+        return out
+    # Only the box of the True pixels widened by the radius can change; beyond the mask's
+    # edge every pixel is False, as the filters' constant padding and the transform
+    # assume, so the box gives the same set.
+    cols = np.flatnonzero(mask.any(axis=0))
+    r = int(np.ceil(radius))
+    box = (slice(max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1),
+           slice(max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1))
+    out[box] = _dilate_box(mask[box], radius)
+    return out
+
+
+def _dilate_box(mask: np.ndarray, radius: float) -> np.ndarray:
+    """:func:`_dilate` of a mask that has True pixels, on all of it."""
     if radius > _DILATE_RECT_MAX:
         return distance_transform_edt(~mask) <= radius
     m = mask.astype(np.uint8)
@@ -375,11 +390,17 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
     """
     n = shape[0]
     band = 4.0 + 2.0 * algo.smooth_sigma_px  # px either side of the rim
+    reach = int(np.ceil(2 * band * algo.oversample))  # grid samples
     r = np.hypot(x, y)
+    rim_gap = np.abs(r - 1.0)
     untrusted = np.zeros(n * n, bool)
-    untrusted[region] = (annulus ^ mask_in) | (annulus ^ mask_ex)
-    untrusted = _dilate(untrusted.reshape(n, n), int(np.ceil(2 * band * algo.oversample)))
-    sel = (np.abs(r - 1.0) <= band / r_d) & ~untrusted.ravel()[region]
+    # Points farther than the reach from the rim band cannot mark a band point (the triangle
+    # inequality on the radii): left out, the dilation's box shrinks to the vignetted lunes
+    # at the rim, and the central obscuration's edges drop out.
+    untrusted[region] = (((annulus ^ mask_in) | (annulus ^ mask_ex))
+                         & (rim_gap <= band / r_d + (reach + 1) * spacing))
+    untrusted = _dilate(untrusted.reshape(n, n), reach)
+    sel = (rim_gap <= band / r_d) & ~untrusted.ravel()[region]
     if sel.sum() < 200:
         return None, None
     sigma = np.hypot(algo.smooth_sigma_px, np.sqrt(1.0 / 12.0)) * algo.oversample

@@ -318,21 +318,23 @@ class LeastSquares:
         self.jmax = basis.jmax
         b = response_matrix(shape, spacing, region, basis, pupil, edge_sigma, mappings, kappa,
                             weight)
-        # W = -(B^T B)^-1 B^T dI / kappa, precomputed as one matrix: the small Gram matrix
-        # inverted, then one float32 product; (B B^T)^-1 only sets how fast the loop
-        # reaches its fixed point.  (In float64 with np.linalg.solve on the (jmax, n)
-        # right-hand side the set-up cost 13 ms a pair, now ~5 ms; docs/performance.md, Frames.)
+        # W = -(B B^T)^-1 B dI / kappa: B dI in one float32 product per iteration, then the
+        # small inverse in float64.  (B B^T)^-1 only sets how fast the loop reaches its
+        # fixed point.  Folding the inverse into B once would cost a (jmax, jmax) x
+        # (jmax, n) product per pair geometry for nothing per iteration.
         # The Gram matrix from the float32 B (single-precision BLAS, no float64 copy of B),
         # inverted in float64: its rounding, ~5e-8 of the largest element, moves the inverse
         # by ~6e-6 (condition ~5e4 at the corners), which again only sets the convergence
         # rate.
         gram = (b @ b.T).astype(np.float64)
-        self._matrix = np.zeros((self.jmax, region.size), dtype=np.float32)
-        np.matmul(-np.linalg.inv(gram).astype(np.float32), b, out=self._matrix[1:])
+        self._response = b
+        self._gain = -np.linalg.inv(gram)
 
     def solve(self, d_intensity: np.ndarray, kappa: float) -> np.ndarray:
         """Residual wavefront Z1..Z_jmax (nm) from ``I_intra - I_extra`` on the points."""
-        return (self._matrix @ d_intensity.astype(np.float32)).astype(float) / kappa
+        out = np.zeros(self.jmax)
+        out[1:] = self._gain @ (self._response @ d_intensity.astype(np.float32)) / kappa
+        return out
 
 
 SOLVERS = {"exp": SeriesExpansion, "fft": IterativeFFT, "lsq": LeastSquares}
