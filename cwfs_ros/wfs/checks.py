@@ -64,7 +64,7 @@ One stamp turned or mirrored (:func:`check_orientation`)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -411,17 +411,63 @@ def _turned_back(units: np.ndarray, spectra: np.ndarray, rows: np.ndarray, cols:
     differences against the footprint (2, 7).  Turning the footprint back instead of the
     stamp forward gives the same correlation (both are isometries of the window about its
     centre; an even window's half-pixel offset is within the searched shifts), once per
-    geometry instead of at every estimate."""
+    geometry instead of at every estimate.
+
+    Every turn is the footprint or its transpose with some axes reversed, whose spectrum is
+    that one's with its frequencies reversed (:func:`_reversed_spectrum`): one transform of
+    the transpose serves all seven."""
     n_o = len(WRONG_ORIENTATIONS)
+    size = units.shape[-1]
     out = np.zeros((2, n_o, *spectra.shape[1:]), dtype=spectra.dtype)
     contrast = np.zeros((2, n_o))
     diff_sq = np.zeros_like(contrast)
+    turns = [_as_reversals(_inverse(o), size) for o in WRONG_ORIENTATIONS]
     for s in range(2):
-        back = np.stack([orient_image(units[s], _inverse(o)) for o in WRONG_ORIENTATIONS])
-        out[s] = np.conj(sfft.rfft2(back))
+        plain = (np.conj(spectra[s]), sfft.rfft2(units[s].T))
+        for k, (transposed, axes) in enumerate(turns):
+            out[s, k] = np.conj(_reversed_spectrum(plain[transposed], axes))
+            back = (units[s].T if transposed else units[s])[_reversal(axes[0]),
+                                                             _reversal(axes[1])]
+            diff_sq[s, k] = np.sum((back - units[s]) ** 2)
         contrast[s] = 1.0 - _peak(out[s] * np.conj(spectra[s]), rows, cols)
-        diff_sq[s] = np.sum((back - units[s]) ** 2, axis=(1, 2))
     return out, contrast, diff_sq
+
+
+def _reversal(reverse: bool) -> slice:
+    return slice(None, None, -1 if reverse else 1)
+
+
+@lru_cache(maxsize=64)
+def _as_reversals(o: Orientation, size: int) -> tuple[int, tuple[bool, bool]]:
+    """``(transposed, (reverse rows, reverse columns))`` such that ``orient_image(a, o)`` of
+    a square ``a`` is ``a`` (or ``a.T`` when transposed) with those axes reversed."""
+    probe = np.arange(size * size).reshape(size, size)
+    turned = orient_image(probe, o)
+    for transposed, base in enumerate((probe, probe.T)):
+        for axes in ((False, False), (True, False), (False, True), (True, True)):
+            flipped = base[_reversal(axes[0]), _reversal(axes[1])]
+            if np.array_equal(flipped, turned):
+                return transposed, axes
+    raise AssertionError(f"{o} is not a symmetry of the square")
+
+
+def _reversed_spectrum(spec: np.ndarray, axes: tuple[bool, bool]) -> np.ndarray:
+    """``rfft2`` of a real square image with the given axes reversed (``a[::-1]`` along
+    them), from the image's own ``rfft2`` ``spec``.
+
+    Reversing an axis of length n maps index i to n - 1 - i, which multiplies frequency k by
+    ``exp(2 pi i k / n)`` and reverses it (k -> -k mod n); on the half spectrum of a real
+    image, a reversed column frequency is the conjugate at the reversed row frequency.
+    """
+    n = spec.shape[0]
+    k = np.arange(n)
+    neg = (-k) % n
+    out = spec
+    if axes[1]:
+        out = np.conj(out[neg]) * np.exp(2j * np.pi * k[: spec.shape[1]] / n)[None, :]
+    if axes[0]:
+        out = out[neg] * np.exp(2j * np.pi * k / n)[:, None]
+    return out.astype(spec.dtype, copy=False)
 
 
 def _window(image: np.ndarray, centre_xy: tuple[float, float], size: int) -> np.ndarray:
