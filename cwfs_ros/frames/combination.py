@@ -235,8 +235,7 @@ def _reject_outliers(d: np.ndarray, sig: np.ndarray, finite: np.ndarray,
     if used.sum() < 3:
         return used, term_used, chi, fallback
     for _ in range(cfg.max_iter):
-        centre = np.array([np.median(d[term_used[:, j], j]) if term_used[:, j].any()
-                           else 0.0 for j in range(N_TERMS)])
+        centre = _masked_medians(d, term_used)
         r = (d - centre[None, :]) / sig
         r[~finite] = np.inf
         chi = np.median(np.abs(np.where(np.isfinite(r), r, 1e6)), axis=1) / 0.6745
@@ -254,6 +253,16 @@ def _reject_outliers(d: np.ndarray, sig: np.ndarray, finite: np.ndarray,
             break
         used, term_used = new_used, new_term
     return used, term_used, chi, fallback
+
+
+def _masked_medians(d: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Per column, the median of the entries ``use`` keeps (0 where it keeps none): as
+    ``np.median`` gives it, from one sort of all the columns."""
+    srt = np.sort(np.where(use, d, np.inf), axis=0)
+    k = use.sum(axis=0)
+    cols = np.arange(d.shape[1])
+    lo, hi = srt[np.maximum(k - 1, 0) // 2, cols], srt[k // 2, cols]
+    return np.where(k > 0, 0.5 * (lo + hi), 0.0)
 
 
 def _weighted_mean(d: np.ndarray, sig: np.ndarray, term_used: np.ndarray,

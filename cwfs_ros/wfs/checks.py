@@ -313,14 +313,13 @@ def _splat(x: np.ndarray, y: np.ndarray, size: int) -> np.ndarray:
     i0 = np.floor(x).astype(np.int64)
     j0 = np.floor(y).astype(np.int64)
     fx, fy = x - i0, y - j0
-    out = np.zeros(size * size)
-    for di, wx in ((0, 1.0 - fx), (1, fx)):
-        for dj, wy in ((0, 1.0 - fy), (1, fy)):
-            ii, jj = i0 + di, j0 + dj
-            ok = (ii >= 0) & (ii < size) & (jj >= 0) & (jj < size)
-            out += np.bincount(jj[ok] * size + ii[ok], weights=(wx * wy)[ok],
-                               minlength=size * size)
-    return out.reshape(size, size)
+    # The four corners of every point in one histogram.
+    ii = np.concatenate((i0, i0 + 1, i0, i0 + 1))
+    jj = np.concatenate((j0, j0, j0 + 1, j0 + 1))
+    w = np.concatenate(((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy))
+    ok = (ii >= 0) & (ii < size) & (jj >= 0) & (jj < size)
+    return np.bincount(jj[ok] * size + ii[ok], weights=w[ok],
+                       minlength=size * size).reshape(size, size)
 
 
 def _unit(a: np.ndarray) -> np.ndarray:
@@ -459,15 +458,26 @@ def _reversed_spectrum(spec: np.ndarray, axes: tuple[bool, bool]) -> np.ndarray:
     ``exp(2 pi i k / n)`` and reverses it (k -> -k mod n); on the half spectrum of a real
     image, a reversed column frequency is the conjugate at the reversed row frequency.
     """
-    n = spec.shape[0]
-    k = np.arange(n)
-    neg = (-k) % n
+    neg, row_phase, col_phase = _reversal_factors(spec.shape[0], spec.shape[1],
+                                                  np.dtype(spec.dtype).str)
     out = spec
     if axes[1]:
-        out = np.conj(out[neg]) * np.exp(2j * np.pi * k[: spec.shape[1]] / n)[None, :]
+        out = np.conj(out[neg]) * col_phase
     if axes[0]:
-        out = out[neg] * np.exp(2j * np.pi * k / n)[:, None]
-    return out.astype(spec.dtype, copy=False)
+        out = out[neg] * row_phase
+    return out
+
+
+@lru_cache(maxsize=8)
+def _reversal_factors(n: int, half: int, dtype: str
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(-k mod n, the row phases (n, 1), the column phases (1, half)) of
+    :func:`_reversed_spectrum`, in the spectrum's type."""
+    k = np.arange(n)
+    phase = np.exp(2j * np.pi * k / n).astype(dtype)
+    for a in (k, phase):
+        a.setflags(write=False)
+    return (-k) % n, phase[:, None], phase[None, :half]
 
 
 def _window(image: np.ndarray, centre_xy: tuple[float, float], size: int) -> np.ndarray:
