@@ -203,6 +203,47 @@ def test_region_neighbours_match_a_walk_over_the_grid() -> None:
             assert idx[k] == want, (r, c, dr, dc)
 
 
+def test_response_matrix_is_the_divergence_on_the_grid() -> None:
+    """``B_i = div(I grad Z_i)`` by central differences, as the response matrix builds it
+    from its region's neighbours (shifted slices left and right), equals the same
+    differences taken on the whole grid with the flux displacement zero off the region; a
+    guard-band weight zeroes its columns."""
+    from scipy.ndimage import gaussian_filter
+
+    from cwfs_ros.wfs.tie import response_matrix
+
+    n, spacing = 40, 1.0 / 17.0
+    ax = (np.arange(n) - (n - 1) / 2.0) * spacing
+    gx, gy = np.meshgrid(ax, ax)
+    r = np.hypot(gx, gy)
+    pupil_2d = (r <= 1.0) & (r >= 0.61) & ~((gx > 0.7) & (gy > 0.2))  # a vignetted lune
+    region = np.flatnonzero((r <= 1.2) & (r >= 0.45))
+    pupil = pupil_2d.ravel()[region]
+    basis = zernike_basis(gx.ravel()[region], gy.ravel()[region], jmax=11, eps=0.61,
+                          dtype=np.float32)
+    rng = np.random.default_rng(5)
+    weight = (rng.random(region.size) < 0.9).astype(np.float32)
+    got = response_matrix((n, n), spacing, region, basis, pupil, 1.0, weight=weight)
+
+    model = gaussian_filter(pupil_2d.astype(float), 1.0).ravel()[region]
+    want = np.zeros_like(got, dtype=np.float64)
+    for j in range(1, 11):
+        u = np.zeros((n + 2, n + 2))
+        v = np.zeros((n + 2, n + 2))
+        u[1:-1, 1:-1] = _on_grid(n, region, basis.dx[j] * model)
+        v[1:-1, 1:-1] = _on_grid(n, region, basis.dy[j] * model)
+        div = (u[1:-1, 2:] - u[1:-1, :-2] + v[2:, 1:-1] - v[:-2, 1:-1]) / (2.0 * spacing)
+        want[j - 1] = div.ravel()[region] * weight
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-6 * np.abs(want).max())
+    assert np.all(got[:, weight == 0] == 0)
+
+
+def _on_grid(n: int, region: np.ndarray, values: np.ndarray) -> np.ndarray:
+    out = np.zeros(n * n)
+    out[region] = values
+    return out.reshape(n, n)
+
+
 def test_geometry_region_and_common_gram() -> None:
     """The computation region is the dilated union of both pupils on the candidate points
     (read from the cached position table), and the Gram matrix over the common pupil (built
@@ -342,3 +383,24 @@ def test_tile_without_an_edge_model_traces_its_band(monkeypatch: pytest.MonkeyPa
     (_, always, sweep, edges, _), = mp._MAP_TILE_CACHE.values()
     assert edges is None
     assert traced[3] == sweep.size > 500
+
+
+def test_an_instruments_kept_hash_does_not_travel_to_another_process() -> None:
+    """An instrument keeps its hash once made (it keys the geometry caches), but a pickled
+    one hashes in a worker process as that process's own equal instrument does: string
+    hashes differ between processes, and equal keys must find each other."""
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    inst = load_instrument("lsst")
+    assert hash(inst) == hash(load_instrument("lsst"))
+    code = ("import pickle, sys\n"
+            "from cwfs_ros.wfs import load_instrument\n"
+            "a = pickle.loads(sys.stdin.buffer.read())\n"
+            "print(hash(a) == hash(load_instrument('lsst')), a == load_instrument('lsst'))\n")
+    env = {**os.environ, "PYTHONHASHSEED": "random"}
+    out = subprocess.run([sys.executable, "-c", code], input=pickle.dumps(inst),
+                         capture_output=True, check=True, env=env, timeout=120)
+    assert out.stdout.split() == [b"True", b"True"], out

@@ -127,9 +127,19 @@ class Instrument:
             raise ConfigError(f"instrument {self.name!r}: " + "; ".join(problems))
 
     def __hash__(self) -> int:  # the dict field is not hashable; instruments key caches
-        return hash(tuple((f.name, getattr(self, f.name)) for f in fields(self)
-                          if f.name != "band_wavelength_nm")
-                    + tuple(sorted(self.band_wavelength_nm.items())))
+        # Kept once made: an instrument keys ~10 cache look-ups per pair geometry, and the
+        # fields of a frozen instrument do not change.
+        cached = self.__dict__.get("_hash")
+        if cached is None:
+            cached = hash(tuple((f.name, getattr(self, f.name)) for f in fields(self)
+                                if f.name != "band_wavelength_nm")
+                          + tuple(sorted(self.band_wavelength_nm.items())))
+            object.__setattr__(self, "_hash", cached)
+        return cached
+
+    def __getstate__(self) -> dict:
+        # Not the kept hash: string hashes differ between processes.
+        return {k: v for k, v in self.__dict__.items() if k != "_hash"}
 
     # -- derived geometry ------------------------------------------------------------------
     @property
