@@ -917,6 +917,12 @@ def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | 
     cand[1:] |= eq_c
     cand[:-1] |= eq_c
     iy, ix = np.nonzero(cand)
+    if b > 1 and iy.size:
+        # A block whose first two pixels differ is not constant: on integer counts, where
+        # equal sums are common, nearly every candidate ends here, before its 64 pixels
+        # are gathered.
+        first_two = a[iy * b, ix * b] == a[iy * b, ix * b + 1]
+        iy, ix = iy[first_two], ix[first_two]
     if not iy.size:
         return None
     rows = (iy[:, None] * b + np.arange(b))[:, :, None]
