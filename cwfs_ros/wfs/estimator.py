@@ -349,8 +349,31 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     r = int(np.ceil(radius))
     box = (slice(max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1),
            slice(max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1))
+    dy, dx = _disk_offsets(float(radius))
+    iy, ix = np.nonzero(mask[box])
+    if iy.size * dy.size < 2 * iy.size + mask[box].size:
+        # A few scattered pixels (the thin slivers where only one pupil transmits): the
+        # disk stamped at each costs less than passes over their box.
+        ny, nx = mask.shape
+        py = (iy + box[0].start)[:, None] + dy
+        px = (ix + box[1].start)[:, None] + dx
+        ok = (py >= 0) & (py < ny) & (px >= 0) & (px < nx)
+        out[py[ok], px[ok]] = True
+        return out
     out[box] = _dilate_box(mask[box], radius)
     return out
+
+
+@lru_cache(maxsize=16)
+def _disk_offsets(radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(dy, dx) of the grid offsets within ``radius`` (the disk of :func:`_dilate`)."""
+    r = int(np.floor(radius))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    inside = xx * xx + yy * yy <= radius * radius
+    dy, dx = yy[inside], xx[inside]
+    for a in (dy, dx):
+        a.setflags(write=False)
+    return dy, dx
 
 
 def _dilate_box(mask: np.ndarray, radius: float) -> np.ndarray:
