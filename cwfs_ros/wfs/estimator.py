@@ -329,51 +329,68 @@ _DILATE_RECT_MAX = 6
 
 
 def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """``binary_dilation(mask, structure=_disk(radius))``, computed fast.
+    """``binary_dilation(mask, structure=_disk(radius))``, computed fast, on the box of the
+    mask's True pixels widened by the radius (nothing beyond it can change).
 
-    Small radii: the union of the dilations by the disk's rectangles
-    (:func:`_disk_rectangles`), each separable into two running maxima.  Larger ones: a
-    Euclidean distance transform (a pixel is within the disk of some True pixel iff its
-    distance to the nearest one is <= radius; the squared distances are integers, so the
-    float comparison is exact), whose cost does not grow with the radius.  Both give the
-    same set (test_geometry_speed).
+    Where the mask's edge is short (pupils, their rims, thin slivers): the disk stamped at
+    each edge pixel.  The nearest mask pixel to a pixel outside the mask has a 4-neighbour
+    outside it (one step towards that pixel is nearer still), so the edge pixels' disks
+    hold every pixel the dilation adds.  Otherwise, small radii: the union of the dilations
+    by the disk's rectangles (:func:`_disk_rectangles`), each separable into two running
+    maxima; larger ones: a Euclidean distance transform (a pixel is within the disk of some
+    True pixel iff its distance to the nearest one is <= radius; the squared distances are
+    integers, so the float comparison is exact), whose cost does not grow with the radius.
+    All give the same set (test_geometry_speed).
     """
     out = np.zeros(mask.shape, bool)
     rows = np.flatnonzero(mask.any(axis=1))
     if not rows.size:
         return out
-    # Only the box of the True pixels widened by the radius can change; beyond the mask's
-    # edge every pixel is False, as the filters' constant padding and the transform
-    # assume, so the box gives the same set.
+    # Beyond the box every pixel is False, as the filters' constant padding and the
+    # transform assume, so the box gives the same set.
     cols = np.flatnonzero(mask.any(axis=0))
     r = int(np.ceil(radius))
     box = (slice(max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1),
            slice(max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1))
-    dy, dx = _disk_offsets(float(radius))
-    iy, ix = np.nonzero(mask[box])
-    if iy.size * dy.size < 2 * iy.size + mask[box].size:
-        # A few scattered pixels (the thin slivers where only one pupil transmits): the
-        # disk stamped at each costs less than passes over their box.
-        ny, nx = mask.shape
-        py = (iy + box[0].start)[:, None] + dy
-        px = (ix + box[1].start)[:, None] + dx
-        ok = (py >= 0) & (py < ny) & (px >= 0) & (px < nx)
-        out[py[ok], px[ok]] = True
+    m = mask[box]
+    edge = np.flatnonzero(m & ~_interior(m))
+    offsets = _disk_offsets(float(radius), m.shape[1] + 2 * r)
+    # A stamped pixel costs about a tenth of a box pixel's passes (a 150 x 150 LSST pupil
+    # union at radius 4: 0.10 against 0.32 ms; its rim's vignetted lunes at radius 12,
+    # 0.15 against 0.21 ms for the transform).
+    if edge.size * offsets.size < 12 * m.size:
+        # Stamped on the box padded by the radius, whose flat offsets need no bounds.
+        h, w = m.shape
+        padded = np.zeros((h + 2 * r) * (w + 2 * r), bool)
+        at = (edge // w + r) * (w + 2 * r) + edge % w + r
+        padded[(at[:, None] + offsets).ravel()] = True
+        out[box] = padded.reshape(h + 2 * r, w + 2 * r)[r:r + h, r:r + w] | m
         return out
-    out[box] = _dilate_box(mask[box], radius)
+    out[box] = _dilate_box(m, radius)
     return out
 
 
-@lru_cache(maxsize=16)
-def _disk_offsets(radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(dy, dx) of the grid offsets within ``radius`` (the disk of :func:`_dilate`)."""
+def _interior(m: np.ndarray) -> np.ndarray:
+    """The pixels of ``m`` whose four neighbours are all in it (beyond the array's edge
+    counts as in it: the dilation's pixels all lie inside)."""
+    inner = m.copy()
+    inner[1:] &= m[:-1]
+    inner[:-1] &= m[1:]
+    inner[:, 1:] &= m[:, :-1]
+    inner[:, :-1] &= m[:, 1:]
+    return inner
+
+
+@lru_cache(maxsize=64)
+def _disk_offsets(radius: float, width: int) -> np.ndarray:
+    """Flat offsets, on rows of ``width``, of the grid points within ``radius`` (the disk
+    of :func:`_dilate`)."""
     r = int(np.floor(radius))
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     inside = xx * xx + yy * yy <= radius * radius
-    dy, dx = yy[inside], xx[inside]
-    for a in (dy, dx):
-        a.setflags(write=False)
-    return dy, dx
+    flat = yy[inside] * width + xx[inside]
+    flat.setflags(write=False)
+    return flat
 
 
 def _dilate_box(mask: np.ndarray, radius: float) -> np.ndarray:
