@@ -234,6 +234,18 @@ class _FitOperator:
         for a in (self.z, self.dx, self.dy, self.fit_idx, self.pinv):
             a.setflags(write=False)
         self.lattice = _lattice(x, y)
+        self._r2 = x * x + y * y
+        self._annuli: dict[float, np.ndarray] = {}
+
+    def annulus(self, obscuration: float) -> np.ndarray:
+        """The points in the annulus of this obscuration (:func:`_annulus`; kept, read-only:
+        every pair geometry asks for it on the same pupil grid)."""
+        a = self._annuli.get(obscuration)
+        if a is None:
+            a = (self._r2 <= 1.0) & (self._r2 >= obscuration ** 2)
+            a.setflags(write=False)
+            self._annuli[obscuration] = a
+        return a
 
     def infer_transmitted(self, known: np.ndarray, transmitted: np.ndarray,
                           annulus: np.ndarray) -> np.ndarray:
@@ -359,7 +371,7 @@ def _batoid(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np
     # Smooth fit over every traced point (the computation region extends a little beyond the
     # pupil; rays there are traced through the same surfaces, so the fit interpolates).
     op = _fit_operator(x, y)
-    annulus = _annulus(inst, x, y)
+    annulus = op.annulus(inst.obscuration)
     if tile_deg > 0 and op.lattice is not None:
         tiled = _batoid_tiled(inst, side, defocus_mm, x, y, band, wavelength_nm, field_deg,
                               tile_deg, op, annulus)
@@ -1023,11 +1035,11 @@ def nominal_mapping(inst: Instrument, side: str, x: np.ndarray, y: np.ndarray, *
         wl = inst.wavelength_nm(band, wavelength_nm)
         args = (inst, side, defocus_mm, x, y, band, wl,
                 (float(field_deg[0]), float(field_deg[1])))
+        # (_batoid's transmitted points are already within the annulus.)
         if tile_deg > 0:
             parts, transmitted, rms = _batoid(*args, tile_deg=float(tile_deg))
         else:
             parts, transmitted, rms = _batoid(*args)
-        transmitted = transmitted & _annulus(inst, x, y)
     return ImageMapping(side, *parts, transmitted=transmitted,
                         c_px_per_nm=_c_px_per_nm(inst, side, defocus_mm), fit_rms_px=rms)
 
