@@ -146,27 +146,39 @@ def run_trial(k: int, args, halves, settings, sel_cfg, nominal) -> dict:
             "truth_departure_ref": truth_ref - design_ref}
 
 
-def machine_reference_ms() -> float:
-    """Median of 20 warm lsq estimates of one on-axis 160-px pair (one BLAS thread): the
-    machine's speed, to compare frame timings across machines (README Speed measured this
-    kind of estimate at 6.1 ms on the machine of the earlier figures)."""
-    from cwfs_ros.sim.render import render_donut
-    from cwfs_ros.sim.telescope import perturbed_telescope
-    from cwfs_ros.wfs import estimate_wavefront
+class MachineReference:
+    """The machine's speed: a warm lsq estimate of one on-axis 160-px pair (one BLAS
+    thread, 14 outer iterations), timed on demand, to compare frame timings across machines
+    (README Speed measured this kind of estimate at 6.1 ms on the machine of the earlier
+    figures)."""
 
-    tel = perturbed_telescope(np.zeros(50), band="r")
-    rng = np.random.default_rng(0)
-    imgs = [render_donut(tel, (0, 0), dz, wavelength_nm=WL, npix=160, n_photons=2e5, rng=rng)
-            for dz in (-1.5, 1.5)]
-    kw = dict(field_intra_deg=(0, 0), field_extra_deg=(0, 0), solver="lsq", tolerance_nm=0.0)
-    ts = []
-    with threadpool_limits(1):
-        for k in range(21):
+    def __init__(self) -> None:
+        from cwfs_ros.sim.render import render_donut
+        from cwfs_ros.sim.telescope import perturbed_telescope
+
+        tel = perturbed_telescope(np.zeros(50), band="r")
+        rng = np.random.default_rng(0)
+        self.images = [render_donut(tel, (0, 0), dz, wavelength_nm=WL, npix=160,
+                                    n_photons=2e5, rng=rng) for dz in (-1.5, 1.5)]
+        self.kw = dict(field_intra_deg=(0, 0), field_extra_deg=(0, 0), solver="lsq",
+                       tolerance_nm=0.0)
+
+    def time_ms(self) -> float:
+        """One estimate, timed after an untimed one (which builds its geometry if a caller
+        cleared the caches, and brings its data back into the CPU caches)."""
+        from cwfs_ros.wfs import estimate_wavefront
+
+        with threadpool_limits(1):
+            estimate_wavefront(*self.images, **self.kw)
             t0 = time.perf_counter()
-            estimate_wavefront(*imgs, **kw)
-            if k:
-                ts.append(time.perf_counter() - t0)
-    return float(np.median(ts) * 1e3)
+            estimate_wavefront(*self.images, **self.kw)
+            return (time.perf_counter() - t0) * 1e3
+
+
+def machine_reference_ms(samples: int = 20) -> float:
+    """Median of ``samples`` :class:`MachineReference` estimates."""
+    ref = MachineReference()
+    return float(np.median([ref.time_ms() for _ in range(samples)]))
 
 
 def evaluate(trials: list[dict], comb: CombinationConfig) -> dict:
