@@ -445,16 +445,28 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
     sigma = np.hypot(algo.smooth_sigma_px, np.sqrt(1.0 / 12.0)) * algo.oversample
     grid = np.zeros(n * n)
     grid[region] = 0.5 * (mask_in.astype(float) + mask_ex.astype(float))
-    mb = gaussian_filter(grid.reshape(n, n), sigma)
-    gy, gx = np.gradient(mb, spacing)
+    mb = gaussian_filter(grid.reshape(n, n), sigma).ravel()
     idx = region[sel]
-    design = np.stack([mb.ravel()[idx], -gx.ravel()[idx], -gy.ravel()[idx]], axis=1)
+    design = np.stack([mb[idx], *(-g for g in _central_gradient(mb, n, idx, spacing))],
+                      axis=1)
     normal = design.T @ design
     if np.linalg.cond(normal) > 1e8:
         return None, None
     # The 3 x 3 inverse times the design: np.linalg.solve with the design's thousands of
     # columns as right-hand sides costs ten times more, for the same operator.
     return np.flatnonzero(sel), (np.linalg.inv(normal) @ design.T).astype(np.float32)
+
+
+def _central_gradient(f: np.ndarray, n: int, idx: np.ndarray, spacing: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(d/dx, d/dy) of the flat (n, n) grid ``f`` at its points ``idx``, as
+    ``np.gradient(f.reshape(n, n), spacing)`` gives them there, without the whole grid's."""
+    rows, cols = np.divmod(idx, n)
+    if rows.min() < 1 or cols.min() < 1 or rows.max() > n - 2 or cols.max() > n - 2:
+        gy, gx = np.gradient(f.reshape(n, n), spacing)  # one-sided at the grid's edge
+        return gx.ravel()[idx], gy.ravel()[idx]
+    h2 = 2.0 * spacing
+    return (f[idx + 1] - f[idx - 1]) / h2, (f[idx + n] - f[idx - n]) / h2
 
 
 def _footprints(m_in: ImageMapping, m_ex: ImageMapping, grid_in: np.ndarray,

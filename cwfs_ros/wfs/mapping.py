@@ -1410,6 +1410,16 @@ def _tile_wanted(requests: dict[tuple, set[tuple[float, float]]], key: tuple,
 
 
 def _tile_monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    if np.ndim(u) == 0 and np.ndim(v) == 0:
+        # One field (every star): the powers by the same numpy calls as below (to the bit:
+        # a square is a product there, and another power pow()), the products in Python
+        # floats, without thirty numpy calls on 0-d arrays.
+        uv = np.array([float(u), float(v)])
+        pu, pv = zip(*((float(p[0]), float(p[1]))
+                       for p in (uv ** k for k in range(_DESIGN_TILE_DEGREE + 1))),
+                     strict=True)
+        return np.array([pu[a] * pv[d - a] for d in range(_DESIGN_TILE_DEGREE + 1)
+                         for a in range(d + 1)])
     return np.stack([u**a * v**(d - a) for d in range(_DESIGN_TILE_DEGREE + 1)
                      for a in range(d + 1)], axis=-1)
 
