@@ -614,7 +614,8 @@ class _DiskSums:
         moments = np.empty((h_, w_), complex)
         moments.real = img
         np.multiply(img, _offsets(w_) + x0, out=moments.imag)
-        sums = np.zeros((h_, w_ + 1), complex)
+        sums = np.empty((h_, w_ + 1), complex)
+        sums[:, 0] = 0.0
         np.cumsum(moments, axis=1, out=sums[:, 1:])
         return cls(sums, _offsets(h_) + y0, x0, w_)
 
@@ -676,12 +677,25 @@ def _measure(frame: np.ndarray, bg: Background, cand: _Candidate, r_out: float, 
     # The centroid's own noise: the flux-weighted scatter of pixel radii over sqrt(N_eff).
     cen_sig = np.sqrt(npix * bg.noise ** 2 * (r_out * r_out)
                       + max(flux, 0.0) / cfg.gain_e_per_adu * r_out * r_out) / max(flux, 1e-300)
-    cols = _offsets(w_)
-    inside = (cols >= lo[:, None]) & (cols < hi[:, None])
-    peak_raw = float(raw[inside].max()) if npix else float("nan")
+    peak_raw = _disk_peak(raw, lo, hi) if npix else float("nan")
     return dict(x=cx, y=cy, flux=flux, snr=float(snr), peak_value=peak_raw, **shape,
                 centre_offset=float(np.hypot(cx - cand.x, cy - cand.y)),
                 centre_sigma=float(cen_sig))
+
+
+def _disk_peak(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """The largest pixel of ``img`` within the column spans ``[lo, hi)`` of its rows (at
+    least one row not empty): one running maximum per row's span, rather than a mask of
+    the whole stamp."""
+    h_, w_ = img.shape
+    rows = np.flatnonzero(hi > lo)
+    bounds = np.empty(2 * rows.size, np.intp)
+    bounds[0::2] = rows * w_ + lo[rows]
+    bounds[1::2] = rows * w_ + hi[rows]
+    if bounds[-1] == img.size:
+        bounds = bounds[:-1]  # the last span runs to the end, as reduceat's last one does
+    # (Every other segment lies between two spans, and is not read.)
+    return float(np.maximum.reduceat(img.ravel(), bounds)[0::2].max())
 
 
 def _shape_fractions(sums: _DiskSums, cand: _Candidate, flux: float, r_in: float,
