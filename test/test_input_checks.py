@@ -371,3 +371,28 @@ def test_a_stamp_upsampled_twice_is_refused_as_larger_than_expected() -> None:
     with pytest.raises(ImageError) as err:
         _estimate(sky, _noisy(e_ex, 1e6, 50, rng))
     assert "expected radius" not in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("size", [150, 151])
+def test_turned_footprints_spectra_are_the_turned_images_transforms(size: int) -> None:
+    """The footprints' turned-back spectra, made from two transforms with frequencies
+    reversed, are the transforms of the footprints turned by orient_image (even and odd
+    windows), and their squared differences are the images'."""
+    from scipy import fft as sfft
+
+    from cwfs_ros.wfs.checks import WRONG_ORIENTATIONS, _inverse, _shift_bases, _turned_back
+    from cwfs_ros.wfs.orientation import orient_image
+
+    rng = np.random.default_rng(size)
+    units = gaussian_filter(rng.random((2, size, size)), (0, 3, 3)).astype(np.float32)
+    spectra = np.conj(sfft.rfft2(units))
+    rows, cols = _shift_bases(size, 4)
+    out, _, diff_sq = _turned_back(units, spectra, rows.astype(np.complex64),
+                                   cols.astype(np.complex64))
+    for s in range(2):
+        for k, o in enumerate(WRONG_ORIENTATIONS):
+            back = orient_image(units[s], _inverse(o))
+            want = np.conj(sfft.rfft2(back))
+            assert np.abs(out[s, k] - want).max() <= 1e-6 * np.abs(want).max(), (s, o)
+            assert diff_sq[s, k] == pytest.approx(float(np.sum((back - units[s]) ** 2)),
+                                                  rel=1e-5)

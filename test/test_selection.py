@@ -764,3 +764,27 @@ def test_a_16_bit_frame_clipped_at_full_scale_loses_only_its_saturated_star(intr
         assert any(d.ok for d in _near(dets, star)), f"good star {star} lost"
     _, unaware, _ = select_stamps(frame, halves["intra"], config=cfg)
     assert any(d.ok for d in _near(unaware, SATURATED))
+
+
+def test_masked_medians_and_disk_peaks_are_what_numpy_gives() -> None:
+    """The combination's per-term medians from one sort are np.median of each term's kept
+    pairs (0 where none is kept), and a candidate's peak from its rows' spans is the
+    maximum over the disk's mask, on random cases."""
+    from cwfs_ros.frames.combination import _masked_medians
+    from cwfs_ros.frames.detection import _disk_peak, _offsets, _spans
+
+    rng = np.random.default_rng(11)
+    for _ in range(500):
+        n = int(rng.integers(1, 9))
+        d = rng.normal(size=(n, 19))
+        use = rng.random((n, 19)) < 0.7
+        want = [np.median(d[use[:, j], j]) if use[:, j].any() else 0.0 for j in range(19)]
+        np.testing.assert_array_equal(_masked_medians(d, use), want)
+    for _ in range(500):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        img = rng.normal(size=(h, w))
+        lo, hi = _spans(_offsets(h), rng.uniform(-5, w + 5), rng.uniform(-5, h + 5),
+                        rng.uniform(0, 400), 0, w)
+        if (hi - lo).sum():
+            inside = (_offsets(w) >= lo[:, None]) & (_offsets(w) < hi[:, None])
+            assert _disk_peak(img, lo, hi) == img[inside].max()

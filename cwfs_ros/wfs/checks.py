@@ -474,10 +474,11 @@ def _reversal_factors(n: int, half: int, dtype: str
     """(-k mod n, the row phases (n, 1), the column phases (1, half)) of
     :func:`_reversed_spectrum`, in the spectrum's type."""
     k = np.arange(n)
+    neg = (-k) % n
     phase = np.exp(2j * np.pi * k / n).astype(dtype)
-    for a in (k, phase):
+    for a in (neg, phase):
         a.setflags(write=False)
-    return (-k) % n, phase[:, None], phase[None, :half]
+    return neg, phase[:, None], phase[None, :half]
 
 
 def _window(image: np.ndarray, centre_xy: tuple[float, float], size: int) -> np.ndarray:
