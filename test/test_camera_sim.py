@@ -156,8 +156,8 @@ def test_visit_images_and_truth(camera):
 def visit(t) -> int:
     """Render one visit; its stamp (a correction is applied only for a visit published)."""
     n = len(t.truth)
-    # the node finishes the previous visit's bookkeeping after publishing it; a trigger
-    # meanwhile is skipped, so retry it
+    # The node is ready again before it publishes a visit's truth; a trigger it refuses
+    # anyway (counted as visits_skipped) is tried again.
     wait_for(lambda: t.call_trigger().success, 30, "a visit trigger")
     wait_for(lambda: len(t.truth) > n, 60, "a rendered visit")
     return stamp_to_ns(t.truth[-1].header.stamp)

@@ -404,6 +404,7 @@ class CameraSimNode(NodeBasics, Node):
 
     def _render_visit(self, visit: int, dof: np.ndarray, angle_deg: float = 0.0) -> None:
         t0 = time.monotonic()
+        released = False
         try:
             stamp_ns = self._exposure_stamp_ns()
             if stamp_ns is None:
@@ -427,18 +428,21 @@ class CameraSimNode(NodeBasics, Node):
             self._note_published(stamp_ns)
             for k, m in msgs.items():
                 self.pubs[k].publish(m)
-            self.pub_truth.publish(truth)
             dt = time.monotonic() - t0
+            wfe = truth.corner_wavefront_rms_nm
             with self._lock:
                 self.stats["visits_rendered"] += 1
                 self.last_render_s = dt
                 self.last_status = f"visit {visit} published"
-            wfe = truth.corner_wavefront_rms_nm
-            with self._lock:
                 self.last_true_error_nm = wfe
                 self.last_field_error_nm = truth.field_wavefront_rms_nm
                 self.last_fwhm_arcsec = truth.fwhm_arcsec
                 self.last_rotator_angle_deg = angle_deg
+                # Ready for the next visit before the truth goes out, the visit's last
+                # message: a driver that triggers on it is never refused.
+                self._busy = False
+                released = True
+            self.pub_truth.publish(truth)
             self.get_logger().info(
                 f"visit {visit} published (rendered in {dt:.1f} s, rotator {angle_deg:g} deg, "
                 f"true wavefront error {wfe:.1f} nm at the corners, "
@@ -451,8 +455,9 @@ class CameraSimNode(NodeBasics, Node):
             if not self._closing:
                 self.get_logger().error(self.last_status)
         finally:
-            with self._lock:
-                self._busy = False
+            if not released:
+                with self._lock:
+                    self._busy = False
 
     def _render_stamps(self, tel, npix: int, n_photons: float, sky: float,
                        off_max: float, angle_deg: float = 0.0) -> dict:
