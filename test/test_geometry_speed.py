@@ -404,3 +404,27 @@ def test_an_instruments_kept_hash_does_not_travel_to_another_process() -> None:
     out = subprocess.run([sys.executable, "-c", code], input=pickle.dumps(inst),
                          capture_output=True, check=True, env=env, timeout=120)
     assert out.stdout.split() == [b"True", b"True"], out
+
+
+def test_central_gradient_and_one_field_monomials_are_numpys() -> None:
+    """The rim registration's gradient at chosen points is np.gradient's there, inside the
+    grid and at its edge; one field's tile monomials are those of the same field given as
+    arrays, to the bit."""
+    from cwfs_ros.wfs.estimator import _central_gradient
+
+    rng = np.random.default_rng(4)
+    n, spacing = 30, 0.07
+    f = rng.normal(size=n * n)
+    gy, gx = np.gradient(f.reshape(n, n), spacing)
+    inner = np.array([n + 1, 5 * n + 7, (n - 2) * n + n - 2])
+    edge = np.array([0, 3 * n, n * n - 1])
+    for idx in (inner, np.concatenate([inner, edge])):
+        got_x, got_y = _central_gradient(f, n, idx, spacing)
+        np.testing.assert_array_equal(got_x, gx.ravel()[idx])
+        np.testing.assert_array_equal(got_y, gy.ravel()[idx])
+
+    u, v = rng.uniform(-1, 1, 400), rng.uniform(-1, 1, 400)
+    batch = mp._tile_monomials(u, v)
+    for k in range(u.size):
+        np.testing.assert_array_equal(mp._tile_monomials(np.array(u[k]), np.array(v[k])),
+                                      batch[k])

@@ -687,7 +687,7 @@ def _disk_peak(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     """The largest pixel of ``img`` within the column spans ``[lo, hi)`` of its rows (at
     least one row not empty): one running maximum per row's span, rather than a mask of
     the whole stamp."""
-    h_, w_ = img.shape
+    w_ = img.shape[1]
     rows = np.flatnonzero(hi > lo)
     bounds = np.empty(2 * rows.size, np.intp)
     bounds[0::2] = rows * w_ + lo[rows]
@@ -937,7 +937,7 @@ def _dead_blocks(a: np.ndarray, binned: np.ndarray, b: int, saturation: float | 
     iy, ix = np.nonzero(cand)
     if b > 1 and iy.size:
         # A block whose first two pixels differ is not constant: on integer counts, where
-        # equal sums are common, nearly every candidate ends here, before its 64 pixels
+        # equal sums are common, nearly every candidate ends here, before its b * b pixels
         # are gathered.
         first_two = a[iy * b, ix * b] == a[iy * b, ix * b + 1]
         iy, ix = iy[first_two], ix[first_two]

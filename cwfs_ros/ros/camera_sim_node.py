@@ -431,6 +431,10 @@ class CameraSimNode(NodeBasics, Node):
             dt = time.monotonic() - t0
             wfe = truth.corner_wavefront_rms_nm
             with self._lock:
+                # The truth, the visit's last message, goes out under the lock that a
+                # trigger takes, and the node is ready before the lock is let go: a driver
+                # that triggers on the truth waits for that, and is never refused.
+                self.pub_truth.publish(truth)
                 self.stats["visits_rendered"] += 1
                 self.last_render_s = dt
                 self.last_status = f"visit {visit} published"
@@ -438,11 +442,8 @@ class CameraSimNode(NodeBasics, Node):
                 self.last_field_error_nm = truth.field_wavefront_rms_nm
                 self.last_fwhm_arcsec = truth.fwhm_arcsec
                 self.last_rotator_angle_deg = angle_deg
-                # Ready for the next visit before the truth goes out, the visit's last
-                # message: a driver that triggers on it is never refused.
                 self._busy = False
                 released = True
-            self.pub_truth.publish(truth)
             self.get_logger().info(
                 f"visit {visit} published (rendered in {dt:.1f} s, rotator {angle_deg:g} deg, "
                 f"true wavefront error {wfe:.1f} nm at the corners, "

@@ -326,11 +326,17 @@ def _disk_rectangles(radius: int) -> tuple[tuple[int, int], ...]:
 # Up to this radius the rectangle decomposition beats the distance transform (radius 4:
 # 1.1 against 2.8 ms on a 150 x 150 pupil grid; radius 12: 3.4 against 2.8 ms).
 _DILATE_RECT_MAX = 6
+# :func:`_dilate` stamps the disk at the mask's edge pixels while that writes fewer than this
+# many pixels per pixel of the mask's box: a stamped write costs about a tenth of a box
+# pixel's passes (a 150 x 150 LSST pupil union at radius 4: 0.10 against 0.32 ms; the rim's
+# vignetted lunes at radius 12, 0.15 against 0.21 ms for the transform).
+_STAMPS_PER_BOX_PIXEL = 12
 
 
 def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """``binary_dilation(mask, structure=_disk(radius))``, computed fast, on the box of the
-    mask's True pixels widened by the radius (nothing beyond it can change).
+    mask's True pixels widened by the radius (nothing beyond it can change); ``radius`` in
+    whole grid samples.
 
     Where the mask's edge is short (pupils, their rims, thin slivers): the disk stamped at
     each edge pixel.  The nearest mask pixel to a pixel outside the mask has a 4-neighbour
@@ -342,6 +348,7 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     integers, so the float comparison is exact), whose cost does not grow with the radius.
     All give the same set (test_geometry_speed).
     """
+    radius = int(radius)
     out = np.zeros(mask.shape, bool)
     rows = np.flatnonzero(mask.any(axis=1))
     if not rows.size:
@@ -349,16 +356,13 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     # Beyond the box every pixel is False, as the filters' constant padding and the
     # transform assume, so the box gives the same set.
     cols = np.flatnonzero(mask.any(axis=0))
-    r = int(np.ceil(radius))
+    r = radius
     box = (slice(max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1),
            slice(max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1))
     m = mask[box]
     edge = np.flatnonzero(m & ~_interior(m))
-    offsets = _disk_offsets(float(radius), m.shape[1] + 2 * r)
-    # A stamped pixel costs about a tenth of a box pixel's passes (a 150 x 150 LSST pupil
-    # union at radius 4: 0.10 against 0.32 ms; its rim's vignetted lunes at radius 12,
-    # 0.15 against 0.21 ms for the transform).
-    if edge.size * offsets.size < 12 * m.size:
+    offsets = _disk_offsets(radius, m.shape[1] + 2 * r)
+    if edge.size * offsets.size < _STAMPS_PER_BOX_PIXEL * m.size:
         # Stamped on the box padded by the radius, whose flat offsets need no bounds.
         h, w = m.shape
         padded = np.zeros((h + 2 * r) * (w + 2 * r), bool)
@@ -382,24 +386,23 @@ def _interior(m: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _disk_offsets(radius: float, width: int) -> np.ndarray:
+def _disk_offsets(radius: int, width: int) -> np.ndarray:
     """Flat offsets, on rows of ``width``, of the grid points within ``radius`` (the disk
     of :func:`_dilate`)."""
-    r = int(np.floor(radius))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
     inside = xx * xx + yy * yy <= radius * radius
     flat = yy[inside] * width + xx[inside]
     flat.setflags(write=False)
     return flat
 
 
-def _dilate_box(mask: np.ndarray, radius: float) -> np.ndarray:
+def _dilate_box(mask: np.ndarray, radius: int) -> np.ndarray:
     """:func:`_dilate` of a mask that has True pixels, on all of it."""
     if radius > _DILATE_RECT_MAX:
         return distance_transform_edt(~mask) <= radius
     m = mask.astype(np.uint8)
     out = np.zeros(mask.shape, bool)
-    for a, b in _disk_rectangles(int(radius)):
+    for a, b in _disk_rectangles(radius):
         t = maximum_filter1d(m, 2 * a + 1, axis=1, mode="constant") if a else m
         t = maximum_filter1d(t, 2 * b + 1, axis=0, mode="constant") if b else t
         out |= t.astype(bool)
@@ -416,7 +419,8 @@ def _rim_registration(shape: tuple[int, int], spacing: float, region: np.ndarray
                       r: np.ndarray, annulus: np.ndarray, mask_in: np.ndarray,
                       mask_ex: np.ndarray, r_d: float, algo: AlgorithmConfig
                       ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Points and operator registering the compensated images on the primary's outer rim.
+    """Points and operator registering the compensated images on the primary's outer rim
+    (``r``: the computation points' pupil radii, in pupil radii).
 
     The images are aligned by their flux centroids, whose model depends on the vignetting
     model: where the real vignetting edges differ from the model's by a pixel (the FAM edge

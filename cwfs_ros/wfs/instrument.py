@@ -127,8 +127,9 @@ class Instrument:
             raise ConfigError(f"instrument {self.name!r}: " + "; ".join(problems))
 
     def __hash__(self) -> int:  # the dict field is not hashable; instruments key caches
-        # Kept once made: an instrument keys ~10 cache look-ups per pair geometry, and the
-        # fields of a frozen instrument do not change.
+        # Kept once made: an instrument keys ~10 cache look-ups per pair geometry. Its fields
+        # are frozen, and its band table, which keys caches as they do, is not to be changed
+        # after it is made either.
         cached = self.__dict__.get("_hash")
         if cached is None:
             cached = hash(tuple((f.name, getattr(self, f.name)) for f in fields(self)

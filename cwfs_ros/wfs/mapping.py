@@ -124,8 +124,12 @@ def _c_px_per_nm(inst: Instrument, side: str, defocus_mm: float) -> float:
 
 
 def _annulus(inst: Instrument, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    r2 = x * x + y * y
-    return (r2 <= 1.0) & (r2 >= inst.obscuration**2)
+    return _in_annulus(x * x + y * y, inst.obscuration)
+
+
+def _in_annulus(r2: np.ndarray, obscuration: float) -> np.ndarray:
+    """The points of squared pupil radius ``r2`` in the annulus (obscuration to 1)."""
+    return (r2 <= 1.0) & (r2 >= obscuration**2)
 
 
 def _paraxial(inst: Instrument, side: str, defocus_mm: float, x: np.ndarray, y: np.ndarray):
@@ -242,7 +246,7 @@ class _FitOperator:
         every pair geometry asks for it on the same pupil grid)."""
         a = self._annuli.get(obscuration)
         if a is None:
-            a = (self._r2 <= 1.0) & (self._r2 >= obscuration ** 2)
+            a = _in_annulus(self._r2, obscuration)
             a.setflags(write=False)
             self._annuli[obscuration] = a
         return a

@@ -330,6 +330,7 @@ class LeastSquares:
         # by ~6e-6 (condition ~5e4 at the corners), which again only sets the convergence
         # rate.
         gram = (b @ b.T).astype(np.float64)
+        b.setflags(write=False)
         self._response = b
         self._gain = -np.linalg.inv(gram)
 
