@@ -348,7 +348,7 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     integers, so the float comparison is exact), whose cost does not grow with the radius.
     All give the same set (test_geometry_speed).
     """
-    radius = int(radius)
+    r = int(radius)
     out = np.zeros(mask.shape, bool)
     rows = np.flatnonzero(mask.any(axis=1))
     if not rows.size:
@@ -356,27 +356,28 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     # Beyond the box every pixel is False, as the filters' constant padding and the
     # transform assume, so the box gives the same set.
     cols = np.flatnonzero(mask.any(axis=0))
-    r = radius
     box = (slice(max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1),
            slice(max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1))
     m = mask[box]
+    h, w = m.shape
     edge = np.flatnonzero(m & ~_interior(m))
-    offsets = _disk_offsets(radius, m.shape[1] + 2 * r)
+    offsets = _disk_offsets(r, w + 2 * r)
     if edge.size * offsets.size < _STAMPS_PER_BOX_PIXEL * m.size:
         # Stamped on the box padded by the radius, whose flat offsets need no bounds.
-        h, w = m.shape
         padded = np.zeros((h + 2 * r) * (w + 2 * r), bool)
         at = (edge // w + r) * (w + 2 * r) + edge % w + r
         padded[(at[:, None] + offsets).ravel()] = True
         out[box] = padded.reshape(h + 2 * r, w + 2 * r)[r:r + h, r:r + w] | m
         return out
-    out[box] = _dilate_box(m, radius)
+    out[box] = _dilate_box(m, r)
     return out
 
 
 def _interior(m: np.ndarray) -> np.ndarray:
     """The pixels of ``m`` whose four neighbours are all in it (beyond the array's edge
-    counts as in it: the dilation's pixels all lie inside)."""
+    counts as in it: the dilation's pixels all lie inside).  ``binary_erosion(m,
+    border_value=1)`` gives the same set in ten times the time (144 against 15 us on a
+    150 x 150 pupil), which would undo most of what stamping saves."""
     inner = m.copy()
     inner[1:] &= m[:-1]
     inner[:-1] &= m[1:]
@@ -387,11 +388,9 @@ def _interior(m: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=64)
 def _disk_offsets(radius: int, width: int) -> np.ndarray:
-    """Flat offsets, on rows of ``width``, of the grid points within ``radius`` (the disk
-    of :func:`_dilate`)."""
-    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-    inside = xx * xx + yy * yy <= radius * radius
-    flat = yy[inside] * width + xx[inside]
+    """Flat offsets, on rows of ``width``, of the points of :func:`_disk` ``(radius)``."""
+    dy, dx = np.nonzero(_disk(radius))
+    flat = (dy - radius) * width + (dx - radius)
     flat.setflags(write=False)
     return flat
 

@@ -121,11 +121,11 @@ class ZernikeBasis:
     def npoints(self) -> int:
         return self.monomials.shape[1]
 
-    def _from_parent(self, name: str, axis: int = 1) -> np.ndarray | None:
+    def _from_parent(self, name: str) -> np.ndarray | None:
         if self._parent is not None:
             arrays, index = self._parent
             if name in arrays:
-                return np.take(arrays[name], index, axis=axis)
+                return np.take(arrays[name], index, axis=1)
         return None
 
     @cached_property
